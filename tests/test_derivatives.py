@@ -1,0 +1,100 @@
+"""Derivative strategies reach their stated order; the weak form is exact for linear operators."""
+
+import numpy as np
+import pytest
+
+from symsbl.derivatives import (
+    CentralDifference,
+    PointDifference,
+    SavitzkyGolay,
+    WeakForm,
+    get_differentiator,
+)
+from symsbl.errors import DataError
+
+OMEGA = 2 * np.pi * 3.0
+
+
+def _signal(n):
+    t = np.linspace(0.0, 1.0, n + 1)
+    x = np.column_stack([np.sin(OMEGA * t), np.cos(2 * OMEGA * t) + t**2])
+    dx = np.column_stack([OMEGA * np.cos(OMEGA * t), -2 * OMEGA * np.sin(2 * OMEGA * t) + 2 * t])
+    return t, x, dx
+
+
+def _pointwise_error(strategy, n):
+    t, x, dx = _signal(n)
+    d = strategy.targets(t, x)
+    inner = slice(10, -10)  # interior points, where the stated order applies
+    return np.max(np.abs(d[inner] - dx[inner]))
+
+
+@pytest.mark.parametrize(
+    "strategy",
+    [PointDifference(), CentralDifference(), SavitzkyGolay(window=7, polyorder=3),
+     SavitzkyGolay(window=9, polyorder=4)],
+)
+def test_pointwise_order(strategy):
+    ns = np.array([400, 800, 1600])
+    errs = np.array([_pointwise_error(strategy, n) for n in ns])
+    slope = -np.polyfit(np.log(ns), np.log(errs), 1)[0]
+    assert slope == pytest.approx(strategy.order, abs=0.25)
+
+
+def test_point_difference_is_the_forward_difference():
+    t = np.arange(5) * 0.5
+    x = np.array([0.0, 1.0, 3.0, 6.0, 10.0])
+    np.testing.assert_allclose(PointDifference().targets(t, x)[:, 0], [2, 4, 6, 8, 8])
+
+
+def test_weak_form_matches_exact_integral():
+    # target = int phi x' / int phi must equal reduce(x') for any x, to quadrature accuracy
+    t, x, dx = _signal(4000)
+    wf = WeakForm(window=40, power=4)
+    np.testing.assert_allclose(wf.targets(t, x), wf.reduce(dx), rtol=0, atol=2e-6)
+    assert wf.targets(t, x).shape == (wf.n_rows(len(t)), 2)
+
+
+def test_weak_form_quadrature_order():
+    # fixed physical window (1/20 s), shrinking sample interval: error falls at >= order 2p
+    errs = []
+    ns = [400, 800, 1600]
+    for n in ns:
+        t, x, dx = _signal(n)
+        wf = WeakForm(window=n // 20, power=4)
+        # reference: window averages of x' by a fine quadrature of the same test functions
+        fine = 64
+        tf, xf, dxf = _signal(n * fine)
+        ref = WeakForm(window=n // 20 * fine, power=4).reduce(dxf)
+        errs.append(np.max(np.abs(wf.targets(t, x) - ref)))
+    slope = -np.polyfit(np.log(ns), np.log(errs), 1)[0]
+    assert slope == pytest.approx(WeakForm(power=4).order, abs=0.3)
+    assert errs[-1] < 5e-6
+
+
+def test_weak_form_is_linear_in_the_dictionary():
+    rng = np.random.default_rng(0)
+    D = rng.standard_normal((1001, 3))
+    beta = np.array([1.5, -2.0, 0.25])
+    wf = WeakForm(window=25)
+    np.testing.assert_allclose(wf.reduce(D @ beta)[:, 0], wf.reduce(D) @ beta, rtol=1e-12)
+
+
+def test_weak_form_rows_have_independent_noise():
+    # non-overlapping windows: rows of pure white noise are uncorrelated
+    rng = np.random.default_rng(1)
+    t = np.arange(200_001) * 1e-3
+    e = rng.standard_normal((len(t), 1))
+    r = WeakForm(window=20).targets(t, e)[:, 0]
+    rho = np.corrcoef(r[:-1], r[1:])[0, 1]
+    assert abs(rho) < 4 / np.sqrt(len(r))
+
+
+def test_registry_and_errors():
+    assert isinstance(get_differentiator("central"), CentralDifference)
+    with pytest.raises(ValueError, match=r"derivative must be one of \['central', 'point', 'savgol', 'weak'\]; received 'spline'"):
+        get_differentiator("spline")
+    with pytest.raises(DataError, match="needs at least 33"):
+        WeakForm(window=32).targets(np.arange(10.0), np.zeros(10))
+    with pytest.raises(DataError, match="window must be odd"):
+        SavitzkyGolay(window=8).targets(np.arange(10.0), np.zeros(10))
