@@ -90,6 +90,10 @@ class PointDifference:
         """Number of regression rows produced from ``n_samples`` samples."""
         return n_samples
 
+    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
+        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
+        return row_start, row_stop
+
 
 @dataclass(frozen=True)
 class CentralDifference:
@@ -113,6 +117,10 @@ class CentralDifference:
     def n_rows(self, n_samples: int) -> int:
         """Number of regression rows produced from ``n_samples`` samples."""
         return n_samples
+
+    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
+        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
+        return row_start, row_stop
 
 
 @dataclass(frozen=True)
@@ -162,6 +170,10 @@ class SavitzkyGolay:
     def n_rows(self, n_samples: int) -> int:
         """Number of regression rows produced from ``n_samples`` samples."""
         return n_samples
+
+    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
+        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
+        return row_start, row_stop
 
 
 @dataclass(frozen=True)
@@ -223,6 +235,10 @@ class WeakForm:
         """Number of windows that fit in ``n_samples`` samples."""
         return max((n_samples - 1) // self.window, 0)
 
+    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
+        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
+        return row_start * self.window, row_stop * self.window + 1
+
     def _windows(self, A: np.ndarray) -> np.ndarray:
         """View of ``A`` as ``(n_rows, window + 1, n_cols)`` windows sharing end samples."""
         A = np.ascontiguousarray(A, dtype=float)
@@ -277,9 +293,9 @@ def get_differentiator(spec: "str | object") -> object:
             raise ValueError(
                 f"derivative must be one of {sorted(DIFFERENTIATORS)}; received {spec!r}."
             ) from None
-    if all(hasattr(spec, m) for m in ("targets", "reduce", "n_rows")):
+    if all(hasattr(spec, m) for m in ("targets", "reduce", "n_rows", "sample_span")):
         return spec
     raise ValueError(
-        "derivative must be a registry name or an object with targets(t, X), reduce(D) and "
-        f"n_rows(n); received {type(spec).__name__}."
+        "derivative must be a registry name or an object with targets(t, X), reduce(D), "
+        f"n_rows(n) and sample_span(r0, r1); received {type(spec).__name__}."
     )

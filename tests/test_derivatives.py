@@ -98,3 +98,17 @@ def test_registry_and_errors():
         WeakForm(window=32).targets(np.arange(10.0), np.zeros(10))
     with pytest.raises(DataError, match="window must be odd"):
         SavitzkyGolay(window=8).targets(np.arange(10.0), np.zeros(10))
+
+
+@pytest.mark.parametrize("strategy", [PointDifference(), CentralDifference(), WeakForm(window=16)])
+def test_reduce_in_blocks_equals_reduce_at_once(strategy):
+    rng = np.random.default_rng(2)
+    D = rng.standard_normal((1000, 3))
+    whole = strategy.reduce(D)
+    n = strategy.n_rows(len(D))
+    blocks = []
+    for r0 in range(0, n, 7):
+        r1 = min(r0 + 7, n)
+        s0, s1 = strategy.sample_span(r0, r1)
+        blocks.append(strategy.reduce(D[s0:s1])[: r1 - r0])
+    np.testing.assert_array_equal(np.vstack(blocks), whole[:n])
