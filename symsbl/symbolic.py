@@ -30,6 +30,7 @@ _OP_NAMES = {getattr(ca, n): n for n in dir(ca) if n.startswith("OP_")}
 _UNARY = {
     ca.OP_NEG: lambda a: -a,
     ca.OP_SQ: lambda a: a**2,
+    ca.OP_TWICE: lambda a: 2 * a,
     ca.OP_SQRT: sp.sqrt,
     ca.OP_INV: lambda a: 1 / a,
     ca.OP_EXP: sp.exp,
@@ -51,6 +52,9 @@ _UNARY = {
     ca.OP_FLOOR: sp.floor,
     ca.OP_CEIL: sp.ceiling,
     ca.OP_ERF: sp.erf,
+    ca.OP_ERFINV: sp.erfinv,
+    ca.OP_LOG1P: lambda a: sp.log(1 + a),
+    ca.OP_EXPM1: lambda a: sp.exp(a) - 1,
     ca.OP_ASSIGN: lambda a: a,
 }
 
