@@ -94,6 +94,10 @@ class PointDifference:
         """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
         return row_start, row_stop
 
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
+        """This strategy has no data-dependent settings: returns itself."""
+        return self
+
 
 @dataclass(frozen=True)
 class CentralDifference:
@@ -121,6 +125,10 @@ class CentralDifference:
     def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
         """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
         return row_start, row_stop
+
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
+        """This strategy has no data-dependent settings: returns itself."""
+        return self
 
 
 @dataclass(frozen=True)
@@ -175,6 +183,10 @@ class SavitzkyGolay:
         """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
         return row_start, row_stop
 
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
+        """This strategy has no data-dependent settings: returns itself."""
+        return self
+
 
 @dataclass(frozen=True)
 class WeakForm:
@@ -193,8 +205,9 @@ class WeakForm:
 
     Parameters
     ----------
-    window : int
-        Window length in sample intervals (the support of each test function).
+    window : int or None
+        Window length in sample intervals (the support of each test function). None
+        (default): chosen from the data's bandwidth by :meth:`resolve`.
     power : int
         Exponent ``p >= 2`` of the bump; larger is smoother.
 
@@ -203,9 +216,48 @@ class WeakForm:
     Both sides are divided by ``int phi_j dt`` so rows keep the units of x' and D(x).
     """
 
-    window: int = 32
+    window: int | None = None
     power: int = 4
     name: ClassVar[str] = "weak"
+
+    #: Fraction of the power of each state below the bandwidth used by the automatic window.
+    POWER_QUANTILE: ClassVar[float] = 0.999
+    #: Amplitude response of the p = 4 bump is 0.9 at f = 0.5 / window duration.
+    RESPONSE_FACTOR: ClassVar[float] = 0.5
+
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> "WeakForm":
+        """Fix an automatic window (``window=None``) from the data; a set window is kept.
+
+        The window duration is ``0.5 / f_hi``, where ``f_hi`` is the highest over the states
+        of the frequency below which 99.9 % of the (detrended) state's power lies: the
+        bump's amplitude response is then at least 0.9 over the band that carries the
+        dynamics. The window is at least 4 samples and short enough to leave at least
+        ``2 * n_terms`` rows.
+
+        Parameters
+        ----------
+        t : ndarray, shape (n_samples,)
+        X : ndarray, shape (n_samples, n_states)
+        n_terms : int
+            Number of candidate terms the rows will be regressed on.
+        """
+        if self.window is not None:
+            return self
+        X, h = _check(t, X, 8)
+        n = len(X)
+        idx = np.arange(n)
+        f_hi = 0.0
+        for col in X.T:
+            resid = col - np.polyval(np.polyfit(idx, col, 1), idx)
+            power = np.abs(np.fft.rfft(resid)) ** 2
+            if power.sum() <= 0:
+                continue
+            freq = np.fft.rfftfreq(n, h)
+            cum = np.cumsum(power) / power.sum()
+            f_hi = max(f_hi, freq[min(np.searchsorted(cum, self.POWER_QUANTILE), len(freq) - 1)])
+        window = int(round(self.RESPONSE_FACTOR / f_hi / h)) if f_hi > 0 else 4
+        most = (n - 1) // max(2 * n_terms, 1)
+        return WeakForm(window=max(4, min(window, most)), power=self.power)
 
     @property
     def order(self) -> int:
@@ -214,6 +266,8 @@ class WeakForm:
         return self.power + (self.power % 2)
 
     def _weights(self, h: float) -> tuple[np.ndarray, np.ndarray]:
+        if self.window is None:
+            raise DataError("WeakForm(window=None) must be resolved from data first: call resolve(t, X).")
         if self.window < 4 or self.power < 2:
             raise DataError(
                 f"WeakForm needs window >= 4 and power >= 2; received window={self.window}, "
@@ -255,6 +309,7 @@ class WeakForm:
 
     def targets(self, t: np.ndarray, X: np.ndarray) -> np.ndarray:
         """Weak derivative ``-int phi_j' x dt / int phi_j dt``, shape ``(n_rows, n_states)``."""
+        self._weights(1.0)  # validates the settings first
         X, h = _check(t, X, self.window + 1)
         _, dphi = self._weights(h)
         return -np.einsum("k,jkc->jc", dphi, self._windows(X))
@@ -293,9 +348,9 @@ def get_differentiator(spec: "str | object") -> object:
             raise ValueError(
                 f"derivative must be one of {sorted(DIFFERENTIATORS)}; received {spec!r}."
             ) from None
-    if all(hasattr(spec, m) for m in ("targets", "reduce", "n_rows", "sample_span")):
+    if all(hasattr(spec, m) for m in ("targets", "reduce", "n_rows", "sample_span", "resolve")):
         return spec
     raise ValueError(
         "derivative must be a registry name or an object with targets(t, X), reduce(D), "
-        f"n_rows(n) and sample_span(r0, r1); received {type(spec).__name__}."
+        f"n_rows(n), sample_span(r0, r1) and resolve(t, X, n_terms); received {type(spec).__name__}."
     )

@@ -112,3 +112,16 @@ def test_reduce_in_blocks_equals_reduce_at_once(strategy):
         s0, s1 = strategy.sample_span(r0, r1)
         blocks.append(strategy.reduce(D[s0:s1])[: r1 - r0])
     np.testing.assert_array_equal(np.vstack(blocks), whole[:n])
+
+
+def test_weak_form_automatic_window_follows_the_bandwidth():
+    # a 10 Hz sine sampled at 4096 Hz: f_hi = 10 Hz -> window 0.5 / 10 s = 205 samples
+    t = np.arange(40_961) / 4096.0
+    x = np.sin(2 * np.pi * 10 * t)[:, None]
+    wf = WeakForm().resolve(t, x)
+    assert wf.window == round(0.5 / 10 * 4096)
+    # at most n / (2 n_terms) samples per window, so there are enough rows for the terms
+    assert WeakForm().resolve(t, x, n_terms=200).window == (len(t) - 1) // 400
+    assert WeakForm(window=16).resolve(t, x) == WeakForm(window=16)
+    with pytest.raises(DataError, match="must be resolved from data first"):
+        WeakForm().targets(t, x)
