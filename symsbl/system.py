@@ -14,7 +14,7 @@ import numpy as np
 
 from symsbl.errors import SimulationError
 
-__all__ = ["OdeSystem", "NONSMOOTH_OPS", "is_smooth_expr"]
+__all__ = ["OdeSystem", "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "is_smooth_expr"]
 
 #: CasADi operations whose value or slope jumps: a right-hand side using any of them is not smooth.
 NONSMOOTH_OPS = frozenset(
@@ -25,13 +25,20 @@ NONSMOOTH_OPS = frozenset(
     )
 )
 
+#: The subset whose value jumps (as opposed to a kink such as abs, min, max): adaptive solvers stall on these.
+DISCONTINUOUS_OPS = frozenset(
+    getattr(ca, f"OP_{name}")
+    for name in ("SIGN", "IF_ELSE_ZERO", "FLOOR", "CEIL", "FMOD", "REMAINDER", "COPYSIGN", "LT", "LE", "EQ", "NE",
+                 "NOT", "AND", "OR")
+)
+
 _EVAL_CHUNK = 4096
 
 
-def is_smooth_expr(exprs, inputs) -> bool:
-    """True if no operation in ``exprs`` (SX, functions of the SX symbols ``inputs``) is in :data:`NONSMOOTH_OPS`."""
+def is_smooth_expr(exprs, inputs, ops=NONSMOOTH_OPS) -> bool:
+    """True if no operation in ``exprs`` (SX, functions of the SX symbols ``inputs``) is in ``ops``."""
     f = ca.Function("smooth_check", list(inputs), [ca.vertcat(*exprs)])
-    return not any(f.instruction_id(k) in NONSMOOTH_OPS for k in range(f.n_instructions()))
+    return not any(f.instruction_id(k) in ops for k in range(f.n_instructions()))
 
 
 def _scalar_symbols(symbols, what: str) -> tuple[ca.SX, ...]:
@@ -148,8 +155,15 @@ class OdeSystem:
     @property
     def is_smooth(self) -> bool:
         """False if the right-hand side uses sign, abs, min/max, conditionals, floor/ceil or comparisons."""
-        return is_smooth_expr(self.rhs, [ca.vertcat(*self.states), ca.vertcat(*self.inputs),
-                                         ca.vertcat(*self.parameters)])
+        return is_smooth_expr(self.rhs, self._symbols())
+
+    @property
+    def is_continuous(self) -> bool:
+        """False if the right-hand side can jump (sign, conditionals, floor/ceil, comparisons); abs/min/max are kinks."""
+        return is_smooth_expr(self.rhs, self._symbols(), DISCONTINUOUS_OPS)
+
+    def _symbols(self):
+        return [ca.vertcat(*self.states), ca.vertcat(*self.inputs), ca.vertcat(*self.parameters)]
 
     def __repr__(self) -> str:
         return (f"OdeSystem(name={self.name!r}, states={self.state_names}, inputs={self.input_names}, "

@@ -54,6 +54,8 @@ def test_bouc_wen_rejects_bad_exponent():
 def test_smoothness():
     assert systems.linear().is_smooth and systems.duffing().is_smooth and systems.quadratic_damping().is_smooth
     assert not systems.coulomb().is_smooth and not systems.bouc_wen().is_smooth
+    assert systems.bouc_wen().is_continuous and systems.duffing().is_continuous  # abs is a kink, not a jump
+    assert not systems.coulomb().is_continuous
 
 
 def test_parameters_are_symbols_and_reparameterise():
