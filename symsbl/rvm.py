@@ -43,28 +43,38 @@ from symsbl.errors import DataError
 __all__ = ["GramStats", "RVM", "PRUNE_RULES"]
 
 
-def _as_matrix(value, name, *, ndim_ok=(2,)):
+def _as_matrix(value, name, *, ndim_ok=(2,), check_finite=True):
     arr = np.asarray(value, dtype=float)
     if arr.ndim not in ndim_ok:
         raise DataError(
             f"{name} must be a {' or '.join(f'{d}-D' for d in ndim_ok)} array, "
             f"got shape {arr.shape}; reshape it (e.g. {name}.reshape(-1, 1) for one column)."
         )
+    if check_finite:
+        _require_finite(arr, name)
+    return arr
+
+
+def _require_finite(arr, name):
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise DataError(
             f"{name} must be finite, got a non-finite value at index {tuple(int(i) for i in bad)}; "
             "remove or impute NaN/inf rows first."
         )
-    return arr
 
 
-def _check_pair(D, Y):
-    D = _as_matrix(D, "D")
-    Y = _as_matrix(Y, "Y", ndim_ok=(1, 2))
+def _check_pair(D, Y, names=("D", "Y")):
+    # Finiteness is checked on the statistics (a NaN or inf anywhere reaches the diagonal of
+    # D^T D or Y^T Y), so valid data is never scanned twice.
+    D = _as_matrix(D, names[0], check_finite=False)
+    Y = _as_matrix(Y, names[1], ndim_ok=(1, 2), check_finite=False)
     Y = Y.reshape(len(Y), -1)
     if len(D) != len(Y):
-        raise DataError(f"D and Y must have the same number of rows, got {len(D)} and {len(Y)}.")
+        raise DataError(
+            f"{names[0]} and {names[1]} must have the same number of rows, "
+            f"got {len(D)} and {len(Y)}."
+        )
     return D, Y
 
 
@@ -115,17 +125,24 @@ class GramStats:
         return self.dty.shape[1]
 
     @classmethod
-    def from_arrays(cls, D, Y, *, qr=False, chunk_size=8192) -> "GramStats":
+    def from_arrays(cls, D, Y, *, qr=False, chunk_size=8192, _names=("D", "Y")) -> "GramStats":
         """Statistics of a dictionary ``D`` (n_samples, n_terms) and targets ``Y`` (n_samples,) or
         (n_samples, n_targets). ``qr=True`` also accumulates the factor R (chunks of ``chunk_size``
         rows)."""
-        D, Y = _check_pair(D, Y)
+        D, Y = _check_pair(D, Y, _names)
+        gram, yty = D.T @ D, np.einsum("nk,nk->k", Y, Y)
+        if not np.all(np.isfinite(np.diag(gram))):
+            _require_finite(D, _names[0])
+            raise DataError(f"{_names[0]} has values too large to square; rescale its columns.")
+        if not np.all(np.isfinite(yty)):
+            _require_finite(Y, _names[1])
+            raise DataError(f"{_names[1]} has values too large to square; rescale it.")
         r_factor = None
         if qr:
             for start in range(0, len(D), chunk_size):
                 stop = start + chunk_size
                 r_factor = _tsqr(r_factor, np.hstack([D[start:stop], Y[start:stop]]))
-        return cls(D.T @ D, D.T @ Y, np.einsum("nk,nk->k", Y, Y), Y.sum(axis=0), len(D), r_factor)
+        return cls(gram, D.T @ Y, yty, Y.sum(axis=0), len(D), r_factor)
 
     @classmethod
     def from_chunks(cls, chunks: Iterable, *, qr=False) -> "GramStats":
@@ -278,11 +295,8 @@ class RVM:
 
     def fit(self, X, y):
         """Fit to a design matrix ``X`` (n_samples, n_terms) and target ``y`` (n_samples,)."""
-        X = _as_matrix(X, "X")
-        y = _as_matrix(y, "y", ndim_ok=(1,))
-        if len(X) != len(y):
-            raise DataError(f"X and y must have the same number of rows, got {len(X)} and {len(y)}.")
-        return self.fit_stats(GramStats.from_arrays(X, y))
+        _as_matrix(y, "y", ndim_ok=(1,), check_finite=False)
+        return self.fit_stats(GramStats.from_arrays(X, y, _names=("X", "y")))
 
     def fit_stats(self, stats: GramStats, target: int = 0):
         """Fit target ``target`` of precomputed :class:`GramStats`."""
@@ -292,6 +306,8 @@ class RVM:
         n, M = float(stats.n_samples), stats.n_terms
         if n < 2:
             raise DataError(f"at least 2 samples are needed, got n_samples = {n:g}.")
+        if M < 1:
+            raise DataError("the dictionary must have at least one column, got 0.")
         options = self._validated_options(n, M)
         scale = np.sqrt(np.diag(stats.gram).copy())
         scale[~(scale > 0)] = 1.0
