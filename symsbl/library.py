@@ -221,7 +221,7 @@ class Library:
         if isinstance(terms, (ca.SX, sp.Basic, Term)):
             terms = [terms]
         symbol_map = {v.name(): v for v in self._variables}
-        pending: list[Term] = []
+        pending: list[tuple[int, Term]] = []
         raw: list[tuple[int, ca.SX]] = []
         for i, t in enumerate(terms):
             where = f"terms[{i}]"
