@@ -85,6 +85,14 @@ def _resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
     return signals
 
 
+def _first_nonfinite_row(a: np.ndarray) -> int | None:
+    """Index of the first row of ``a`` holding NaN/inf, or None (one summing pass in the common finite case)."""
+    if np.isfinite(a.sum()):
+        return None
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+    return int(bad[0]) if bad.size else None
+
+
 def _input_samples(signals: list[Signal], t: np.ndarray) -> np.ndarray:
     cols = [np.asarray(s(t), dtype=float).reshape(t.size, s.n_outputs) for s in signals]
     return np.hstack(cols) if cols else np.empty((t.size, 0))
@@ -244,9 +252,9 @@ def _rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, optio
         block = states[k0 + 1:k0 + chunk + 1]
         buf.set_res(0, memoryview(block))
         trigger()
-        bad = np.flatnonzero(~np.all(np.isfinite(block), axis=1))
-        if bad.size and k0 + 1 + bad[0] < t.size:
-            row = k0 + 1 + bad[0]
+        bad = _first_nonfinite_row(block)
+        if bad is not None and k0 + 1 + bad < t.size:
+            row = k0 + 1 + bad
             states[row:] = np.nan
             return states[:t.size], float(t[row]), "the state became non-finite (NaN/inf)"
     return states[:t.size], None, ""
@@ -359,12 +367,12 @@ def simulate(
         options=options,
     )
     U = _input_samples(signals, t)
-    bad = np.flatnonzero(~np.all(np.isfinite(states), axis=1))
-    if t_fail is None and bad.size:
-        t_fail, reason = float(t[bad[0]]), reason or "the state became non-finite (NaN/inf)"
+    bad = _first_nonfinite_row(states)
+    if t_fail is None and bad is not None:
+        t_fail, reason = float(t[bad]), reason or "the state became non-finite (NaN/inf)"
     if t_fail is None:
         return Trajectory(t, states, U, system.state_names, system.input_names)
-    n_good = int(bad[0]) if bad.size else t.size
+    n_good = t.size if bad is None else bad
     if on_divergence == "raise" or n_good < 2:
         hint = (" Pass on_divergence='truncate' to get the trajectory up to that point." if n_good >= 2
                 else " Fewer than 2 samples were computed, so there is nothing to return.")
