@@ -46,7 +46,7 @@ def direct_log_evidence(X, y, alpha_u, noise_var, active):
     return -0.5 * (len(y) * np.log(2 * np.pi) + logdet + y @ np.linalg.solve(C, y))
 
 
-@pytest.mark.parametrize("prune", [None, "bic"])
+@pytest.mark.parametrize("prune", [None, "bic", "ebic"])
 def test_log_evidence_equals_direct_formula(prune):
     X, y = small_problem()
     model = RVM(prune_nats=prune).fit(X, y)
@@ -243,7 +243,8 @@ def test_options_free_fixed_noise_floor_and_verbose(capsys):
     clean = RVM(prune_nats=2.5).fit(X, X[:, 1] - X[:, 4])
     assert clean.noise_var_ == pytest.approx(1e-6 * np.var(X[:, 1] - X[:, 4]))
     assert clean.prune_nats_ == 2.5
-    assert RVM().fit(X, y).prune_nats_ == pytest.approx(0.5 * np.log(300))
+    assert RVM().fit(X, y).prune_nats_ == pytest.approx(0.5 * np.log(300) + np.log(10))
+    assert RVM(prune_nats="bic").fit(X, y).prune_nats_ == pytest.approx(0.5 * np.log(300))
     with pytest.warns(RuntimeWarning, match="did not converge in max_iter = 1"):
         RVM(max_iter=1).fit(X, y)
 
