@@ -165,6 +165,16 @@ def test_chunks_carry_the_state_and_start_time_is_absolute():
         assert rel_err(tail.states, whole.states[500:]) < 1e-8
 
 
+@pytest.mark.parametrize("method", ["cvodes", "rk4"])
+def test_reparameterised_system_matches_fresh_one(method):
+    t = time_grid(0.2, 8192)
+    moved = simulate(systems.duffing().with_parameters(k3=3e9, c=5.0), t, inputs=Sine(), method=method, jit=False)
+    fresh = simulate(systems.duffing(k3=3e9, c=5.0), t, inputs=Sine(), method=method, jit=False)
+    np.testing.assert_allclose(moved.states, fresh.states, rtol=0, atol=1e-15)
+    other = simulate(systems.duffing(), t, inputs=Sine(), method=method, jit=False)
+    assert rel_err(moved.states, other.states) > 1e-2
+
+
 def test_two_inputs_analytic_and_sampled():
     x1, x2, u1, u2 = (ca.SX.sym(n) for n in ("x1", "x2", "u1", "u2"))
     s = OdeSystem((x1, x2), (u1, u2), (x2, -400 * x1 - 4 * x2 + u1 + 0.5 * u2), name="two_inputs")
