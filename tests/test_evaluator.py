@@ -149,3 +149,28 @@ def test_data_shape_errors_name_the_variables():
     single = Evaluator(polynomial((X1,), 2), jit=False)
     with pytest.raises(LibraryError, match=r"reshape a single column with Z.reshape\(-1, 1\)"):
         single.evaluate(np.zeros(5))
+
+
+def test_compile_failure_falls_back_silently_unless_jit_is_required(monkeypatch):
+    def broken(f, n):
+        raise RuntimeError("compiler exploded")
+
+    monkeypatch.setattr(evaluator_module, "_compiler", lambda: "gcc")
+    monkeypatch.setattr(evaluator_module, "_jit_loop", broken)
+    evaluator_module._compile.cache_clear()
+    library = polynomial((X1, X2), 2)
+    ev = Evaluator(library, chunk_size=8)
+    assert not ev.is_compiled
+    z = samples(11, 2)
+    np.testing.assert_allclose(ev.evaluate(z), polynomial_reference(z, 2), rtol=1e-12, atol=0)
+    with pytest.raises(LibraryError, match=r"jit: compiling the library failed \(compiler exploded\)"):
+        Evaluator(library, jit=True)
+    evaluator_module._compile.cache_clear()
+
+
+def test_thread_chunk_size_is_rounded_to_the_two_workers():
+    ev = Evaluator(polynomial((X1,), 3), chunk_size=7, jit=False, parallel="thread")
+    assert ev.chunk_size == 8
+    z = samples(21, 1)
+    assert [rows for rows, _ in ev.iter_chunks(z)] == [slice(0, 8), slice(8, 16), slice(16, 21)]
+    np.testing.assert_allclose(ev.evaluate(z), polynomial_reference(z, 3), rtol=1e-12, atol=0)
