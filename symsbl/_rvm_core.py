@@ -9,7 +9,9 @@ After one O(N M^2) pass to build ``G`` every iteration costs O(M m + m^2), indep
 One addition to SparseBayes: an optional penalty of ``prune`` nats per non-free term, i.e. the
 objective is ``L(alpha, beta) - prune * m``. Adding a term must gain more than ``prune`` nats of
 log evidence and a kept term is deleted as soon as deleting it costs less than ``prune`` nats.
-With ``prune = 0`` the rule is exactly SparseBayes v2.
+With ``prune = 0`` the rule is exactly SparseBayes v2. With ``prune > 0`` the solver first
+converges with ``prune = 0`` and then continues from there with the penalty (a continuation: the
+penalised greedy path alone can stall after one term among collinear candidates).
 
 References
 ----------
@@ -285,6 +287,22 @@ def solve(
     alpha0 = np.where(theta0 > 0, s0**2 / np.where(theta0 > 0, theta0, 1.0), _INIT_ALPHA_MAX)
     state = _State(gram, b, beta, active, alpha0)
 
+    # Continuation: reach the plain SparseBayes optimum first, then switch the penalty on and
+    # let it delete (and re-admit) terms from there. Started with the penalty on, the greedy
+    # path can stop after one term when every next useful column is collinear with others and
+    # none gains ``prune`` nats on its own, although the penalised optimum is far better.
+    n_iter, converged = _iterate(state, 0.0, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
+    if prune > 0:
+        more, converged = _iterate(state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
+        n_iter += more
+
+    state.recompute()  # clear rank-one drift before reporting
+    return _finish(state, residual, n, n_iter, converged)
+
+
+def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log):
+    """Run add / delete / re-estimate steps on ``state`` until convergence or ``max_iter``;
+    return the number of iterations and whether it converged."""
     converged = False
     n_iter = 0
     for n_iter in range(1, max_iter + 1):
@@ -320,9 +338,7 @@ def solve(
         if terminate:
             converged = True
             break
-
-    state.recompute()  # clear rank-one drift before reporting
-    return _finish(state, residual, n, n_iter, converged)
+    return n_iter, converged
 
 
 def _gram_residual(gram, b, tt, n):
