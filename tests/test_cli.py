@@ -1,0 +1,130 @@
+"""The command line: identify, simulate, demo, and the errors a user can trigger."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from symsbl import Trajectory, systems, write_trajectory
+from symsbl.cli import main
+from symsbl.signals import Multisine, Sine
+from symsbl.simulate import simulate, time_grid
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    system = systems.duffing()
+    train = simulate(system, time_grid(1.0, 32768), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    held = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=1))
+    write_trajectory(train, d / "train.csv")
+    write_trajectory(held, d / "held.npz")
+    return d
+
+
+def run(argv, capsys):
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_identify_then_simulate(files, capsys):
+    before = (files / "train.csv").read_bytes()
+    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
+                          "--json", str(files / "model.json")], capsys)
+    assert code == 0, err
+    assert "x2' = " in out and "x1^3" in out
+    assert (files / "train.csv").read_bytes() == before  # input never modified
+    doc = json.loads((files / "model.json").read_text())
+    assert doc["states"] == ["x1", "x2"] and doc["inputs"] == ["F"]
+    x2 = next(e for e in doc["equations"] if e["lhs"] == "x2")
+    assert sorted(t["term"] for t in x2["terms"]) == ["F", "x1", "x1**3", "x2"]
+    cubic = next(t for t in x2["terms"] if t["term"] == "x1**3")
+    assert cubic["coef"] == pytest.approx(-1e9, rel=0.01) and cubic["std"] > 0
+    assert {"noise_std", "log_evidence", "rhs"} <= set(x2)
+
+    code, out, err = run(["simulate", str(files / "model.json"), str(files / "held.npz"),
+                          "--json", str(files / "errors.json")], capsys)
+    assert code == 0, err
+    errors = json.loads((files / "errors.json").read_text())
+    assert errors["status"] == "ok" and max(errors["nrmse"].values()) < 0.005
+
+
+def test_poly_library_and_derivative_option(files, capsys):
+    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
+                          "--library", "poly", "--degree", "3", "--derivative", "central"], capsys)
+    assert code == 0, err
+    assert "x1^3" in out
+
+
+def test_library_file(files, capsys, tmp_path):
+    lib = tmp_path / "lib.py"
+    lib.write_text(
+        "import symsbl\n"
+        "x1, x2, F = symsbl.symbols('x1 x2 F')\n"
+        "library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])\n"
+    )
+    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
+                          "--library", str(lib)], capsys)
+    assert code == 0, err
+    assert "x1^3" in out
+
+
+@pytest.mark.parametrize(
+    "make, argv, message",
+    [
+        (None, ["--states", "x1,q"], r"q"),
+        (None, ["--states", "x1,x2", "--library", "LIBFILE"], r"must define `library`, a symsbl Library"),
+        (None, ["--states", "x1,x2", "--library", "spline"], r"--library must be 'paper', 'poly' or an existing Python file"),
+        ("nan", ["--states", "x1,x2", "--inputs", "F"], r"x2.*(NaN|non-finite|not finite)"),
+        ("jitter", ["--states", "x1,x2", "--inputs", "F"], r"(uniform|monoton)"),
+        ("flat", ["--states", "x1,x2", "--inputs", "F"], r"state 'x2' has no variation"),
+        ("short", ["--states", "x1,x2", "--inputs", "F"], r"regression rows for \d+ candidate terms"),
+    ],
+)
+def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
+    src = files / "train.csv"
+    if make:
+        t = np.arange(400) / 1000.0
+        x = np.column_stack([np.sin(20 * t), np.cos(20 * t)])
+        f = np.sin(7 * t)
+        if make == "nan":
+            x[17, 1] = np.nan
+        elif make == "jitter":
+            t = t.copy()
+            t[100] += 0.0004
+        elif make == "flat":
+            x[:, 1] = 3.0
+        elif make == "short":
+            t, x, f = t[:40], x[:40], f[:40]
+        src = tmp_path / "bad.csv"
+        header = "t,x1,x2,F"
+        np.savetxt(src, np.column_stack([t, x, f]), delimiter=",", header=header, comments="")
+    argv = [a if a != "LIBFILE" else str(tmp_path / "nolib.py") for a in argv]
+    (tmp_path / "nolib.py").write_text("x = 1\n")
+    code, out, err = run(["identify", str(src), *argv], capsys)
+    assert code == 2
+    assert err.startswith("symsbl identify: error: ")
+    import re
+
+    assert re.search(message, err), err
+
+
+def test_missing_file(capsys):
+    code, _, err = run(["simulate", "nope.json", "nope.csv"], capsys)
+    assert code == 2 and "does not exist" in err
+
+
+def test_module_entry_point_help():
+    out = subprocess.run([sys.executable, "-m", "symsbl", "--help"], capture_output=True, text=True, check=True)
+    assert "identify" in out.stdout and "demo" in out.stdout
+
+
+@pytest.mark.slow
+def test_demo_quick(capsys):
+    code, out, err = run(["demo", "--quick"], capsys)
+    assert code == 0, err
+    table = out[out.index("system "):]
+    assert table.count("exact") == 5 and "WRONG" not in table

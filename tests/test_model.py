@@ -1,0 +1,139 @@
+"""IdentifiedModel forms (print, sympy, LaTeX, CasADi, JSON) and re-simulation checks."""
+
+import json
+
+import casadi as ca
+import numpy as np
+import pytest
+import sympy as sp
+
+from symsbl import IdentifiedModel, Trajectory, identify, paper, symbols, systems, validate_model
+from symsbl.errors import DataError
+from symsbl.model import Equation, TermEstimate, format_uncertain
+from symsbl.signals import Multisine, Sine
+from symsbl.simulate import simulate, time_grid
+
+
+@pytest.fixture(scope="module")
+def duffing():
+    system = systems.duffing()
+    data = simulate(system, time_grid(1.0, 32768), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    model = identify(data, paper(symbols("x1 x2"), symbols("F"), degree=3))
+    return system, data, model
+
+
+@pytest.mark.parametrize(
+    "value, std, signed, text",
+    [
+        (1.0003, 0.0012, False, "1.000(0.001)"),
+        (-1.0002e4, 3.1, True, "- 1.0002e4(3)"),
+        (-20.03, 0.1, True, "- 20.0(0.1)"),
+        (-1.0001e9, 2e6, True, "- 1.000e9(2e6)"),
+        (9.99996e8, 3e5, False, "1.000e9(3e5)"),
+        (2.5e-5, 1e-6, True, "+ 2.5e-5(1e-6)"),
+    ],
+)
+def test_format_uncertain(value, std, signed, text):
+    assert format_uncertain(value, std, signed=signed) == text
+
+
+def test_print_shows_terms_with_uncertainties(duffing):
+    _, _, model = duffing
+    text = str(model)
+    assert text.splitlines()[0].startswith("x1' = 1.000")
+    line = text.splitlines()[1]
+    assert line.startswith("x2' = ") and " F " in line and "x1^3" in line and "(" in line
+
+
+def test_sympy_and_latex_forms(duffing):
+    _, _, model = duffing
+    eqs = model.to_sympy()
+    t = sp.Symbol("t", real=True)
+    assert eqs[1].lhs == sp.Derivative(sp.Function("x2")(t), t)
+    rhs = eqs[1].rhs
+    x1 = sp.Symbol("x1", real=True)
+    assert float(rhs.coeff(x1**3)) == pytest.approx(-1e9, rel=0.01)
+    latex = model.to_latex()
+    assert latex.startswith(r"\begin{aligned}") and r"\dot{x_{2}}" in latex and "x_{1}^{3}" in latex
+    assert model._repr_latex_() == "$" + latex + "$"
+
+
+def test_casadi_system_reproduces_the_identified_equations(duffing):
+    _, data, model = duffing
+    system = model.to_system()
+    rhs = system.evaluate_rhs(data.states[:50], data.inputs[:50])
+    for k, eq in enumerate(model.equations):
+        expected = sum(t.coef * np.array([float(ca.Function("f", list(model.states) + list(model.inputs), [t.expr])(*row))
+                                          for row in np.hstack([data.states[:50], data.inputs[:50]])]) for t in eq.terms)
+        np.testing.assert_allclose(rhs[:, k], expected, rtol=1e-12, atol=1e-9)
+
+
+def test_json_round_trip(duffing, tmp_path):
+    _, _, model = duffing
+    path = tmp_path / "model.json"
+    model.save(path)
+    doc = json.loads(path.read_text())
+    assert doc["states"] == ["x1", "x2"] and doc["inputs"] == ["F"]
+    eq = doc["equations"][1]
+    assert eq["lhs"] == "x2"
+    assert {"term", "coef", "std", "alpha"} <= set(eq["terms"][0])
+    # rhs parses with sympy in the state and input names and equals the terms
+    local = {n: sp.Symbol(n, real=True) for n in ("x1", "x2", "F")}
+    rhs = sp.sympify(eq["rhs"], locals=local)
+    assert float(rhs.coeff(local["x1"] ** 3)) == pytest.approx(model.equation("x2").coef("x1**3"))
+    back = IdentifiedModel.load(path)
+    assert str(back) == str(model)
+    np.testing.assert_array_equal(back.equation("x2").coefs, model.equation("x2").coefs)
+    np.testing.assert_array_equal(back.equations[1].covariance, model.equations[1].covariance)
+
+
+def test_load_errors(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(DataError, match="is not valid JSON"):
+        IdentifiedModel.load(bad)
+    with pytest.raises(DataError, match="does not exist"):
+        IdentifiedModel.load(tmp_path / "missing.json")
+    with pytest.raises(DataError, match="must have 'states', 'inputs' and 'equations'"):
+        IdentifiedModel.from_json({"states": ["x"]})
+    doc = {"states": ["x"], "inputs": [], "equations": [{"lhs": "x", "terms": [{"term": "y**2", "coef": 1.0}]}]}
+    with pytest.raises(DataError, match=r"uses \['y'\], which are not among the states \['x'\]"):
+        IdentifiedModel.from_json(doc)
+
+
+def test_heldout_validation_and_band(duffing):
+    system, _, model = duffing
+    heldout = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=3))
+    result = validate_model(model, heldout, n_band=8, seed=0)
+    assert result.status == "ok"
+    assert max(result.nrmse.values()) < 0.005
+    assert result.fit["x1"] == pytest.approx(100 * (1 - result.nrmse["x1"]))
+    lower, upper = result.band
+    assert lower.shape == heldout.states.shape and np.all(upper >= lower)
+    # the band is about the simulated response
+    inside = np.mean((result.simulated.states >= lower) & (result.simulated.states <= upper))
+    assert inside > 0.95
+
+
+def test_divergence_is_reported_not_raised():
+    # x' = x^2 from x(0) = 1 blows up at t = 1
+    (x,) = symbols("x")
+    eq = Equation("x", (TermEstimate(expr=x**2, coef=1.0, std=0.01),), np.array([[1e-4]]), 1e-6, 0.0)
+    model = IdentifiedModel(states=(x,), inputs=(), equations=(eq,))
+    t = np.linspace(0.0, 2.0, 2001)
+    data = Trajectory(t=t, states=(1.0 / (1.5 - np.minimum(t, 1.4)))[:, None] * 1.5, state_names=("x",))
+    result = validate_model(model, data, method="rk4", substeps=4)
+    assert result.status == "diverged"
+    assert result.diverged_at == pytest.approx(1.0, abs=0.01)
+    assert result.nrmse["x"] == np.inf
+    assert "diverged in simulation at t = " in result.message
+
+
+def test_validation_errors(duffing):
+    _, data, model = duffing
+    other = Trajectory(t=data.t, states=data.states, inputs=data.inputs, state_names=("y1", "y2"), input_names=("F",))
+    with pytest.raises(DataError, match=r"the model has states \['x1', 'x2'\] but the data has states \['y1', 'y2'\]"):
+        validate_model(model, other)
+    no_input = Trajectory(t=data.t, states=data.states, state_names=("x1", "x2"))
+    with pytest.raises(DataError, match=r"the model has inputs \['F'\] but the data has inputs \[\]"):
+        validate_model(model, no_input)
