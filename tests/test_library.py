@@ -216,3 +216,15 @@ def test_function_evaluates_the_terms():
 def test_errors_name_argument_expected_and_received(build, match):
     with pytest.raises(LibraryError, match=match):
         build()
+
+
+def test_terms_that_differ_only_near_zero_are_kept_apart():
+    # tanh(x/eps) equals sign(x) to machine precision for |x| > 0.04; only small |x| tells them apart
+    import casadi as ca
+
+    from symsbl.library import custom, elementwise
+    from symsbl.symbolic import symbols
+
+    (x,) = symbols("x")
+    lib = elementwise([x], ("sign",)) + custom([ca.tanh(x / 1e-3)], [x])
+    assert lib.names == ["sign(x)", "tanh(1000.0*x)"]
