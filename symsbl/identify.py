@@ -31,7 +31,7 @@ from .library import Library
 from .model import Equation, IdentifiedModel, TermEstimate
 from .rvm import RVM, GramStats
 
-__all__ = ["identify", "regression_stats", "RegressionStats", "complexity"]
+__all__ = ["identify", "fit_stats", "regression_stats", "RegressionStats", "complexity"]
 
 #: Candidates whose columns, normalised, have a cosine above this with a kept term are tested
 #: for equivalence by an exact refit (a cheap pre-filter; the decision is by evidence).
@@ -337,8 +337,25 @@ def identify(
     -------
     IdentifiedModel
     """
-    template = RVM() if rvm is None else rvm
     problem = regression_stats(data, library, derivative=derivative, chunk_size=chunk_size, jit=jit)
+    return fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
+
+
+def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_nats: float = 2.0) -> IdentifiedModel:
+    """Fit one sparse equation per state from accumulated regression statistics.
+
+    This is the second half of :func:`identify`, for statistics built elsewhere (streamed
+    chunks, several machines): the same model comes out of the same statistics.
+
+    Parameters
+    ----------
+    problem : RegressionStats
+        From :func:`regression_stats` or accumulated by other means.
+    rvm, equivalence_nats
+        As in :func:`identify`.
+    """
+    template = RVM() if rvm is None else rvm
+    library = problem.library
     stats = problem.stats
     keys = [complexity(t.sympy) for t in library.terms]
     variables = {v.name(): v for v in library.variables}
