@@ -6,7 +6,7 @@ import pytest
 from symsbl import Library, Trajectory, identify, paper, polynomial, symbols, systems
 from symsbl.demo import CASES, run_case
 from symsbl.errors import DataError, LibraryError
-from symsbl.identify import complexity
+from symsbl.selection import complexity
 from symsbl.signals import Multisine, Sine
 from symsbl.simulate import simulate, time_grid
 
