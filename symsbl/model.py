@@ -17,7 +17,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -25,6 +25,9 @@ import sympy as sp
 
 from .errors import DataError
 from .symbolic import casadi_to_sympy, sympy_to_casadi
+
+if TYPE_CHECKING:
+    from .system import OdeSystem
 
 __all__ = ["TermEstimate", "Equation", "IdentifiedModel", "format_uncertain"]
 
@@ -214,7 +217,7 @@ class IdentifiedModel:
         blocks = [np.atleast_2d(eq.covariance) for eq in self.equations if eq.terms]
         return block_diag(*blocks) if blocks else np.zeros((0, 0))
 
-    def to_system(self, name: str = "identified") -> "OdeSystem":
+    def to_system(self, name: str = "identified") -> OdeSystem:
         """The model as a CasADi :class:`~symsbl.system.OdeSystem` with the coefficients as
         parameters (values: the posterior means)."""
         from .system import OdeSystem

@@ -7,7 +7,6 @@ any CasADi SX expression in the state, input and parameter symbols.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping
 
 import casadi as ca
 import numpy as np

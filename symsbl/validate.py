@@ -217,8 +217,6 @@ class TruthComparison:
 def _true_terms(system) -> list[dict]:
     import sympy as sp
 
-    from .symbolic import casadi_to_sympy
-
     out = []
     for rhs in system.to_sympy():
         terms = {}
