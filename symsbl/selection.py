@@ -52,6 +52,7 @@ def complexity(expr: sp.Expr) -> tuple[int, int, int]:
 
 
 def subset_stats(stats: GramStats, cols: Sequence[int], target: int) -> GramStats:
+    """Statistics of columns ``cols`` and target ``target`` only."""
     cols = list(cols)
     return GramStats(
         stats.gram[np.ix_(cols, cols)],
@@ -63,6 +64,9 @@ def subset_stats(stats: GramStats, cols: Sequence[int], target: int) -> GramStat
 
 
 def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None) -> RVM:
+    """Fit a fresh RVM with ``template``'s options (no free columns) to one target; a given
+    ``prune_nats`` overrides the template's, so subsets are scored with the full problem's
+    penalty."""
     params = template.get_params()
     params["free"] = ()
     if prune_nats is not None:
