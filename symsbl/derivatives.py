@@ -224,14 +224,19 @@ class WeakForm:
     POWER_QUANTILE: ClassVar[float] = 0.999
     #: Amplitude response of the p = 4 bump is 0.9 at f = 0.5 / window duration.
     RESPONSE_FACTOR: ClassVar[float] = 0.5
+    #: Spectral bins count as signal when above this multiple of the white-noise floor (a noise
+    #: bin exceeds it with probability exp(-20) ~ 2e-9).
+    NOISE_MARGIN: ClassVar[float] = 20.0
 
     def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> "WeakForm":
         """Fix an automatic window (``window=None``) from the data; a set window is kept.
 
         The window duration is ``0.5 / f_hi``, where ``f_hi`` is the highest over the states
-        of the frequency below which 99.9 % of the (detrended) state's power lies: the
+        of the frequency below which 99.9 % of the (detrended) state's signal power lies: the
         bump's amplitude response is then at least 0.9 over the band that carries the
-        dynamics. The window is at least 4 samples and short enough to leave at least
+        dynamics. Signal power means periodogram bins more than 20 times the white-noise
+        floor (estimated from the upper half of the band), so the window does not shrink as
+        the measurement noise grows. The window is at least 4 samples and short enough to leave at least
         ``2 * n_terms`` rows.
 
         Parameters
@@ -250,6 +255,11 @@ class WeakForm:
         for col in X.T:
             resid = col - np.polyval(np.polyfit(idx, col, 1), idx)
             power = np.abs(np.fft.rfft(resid)) ** 2
+            # Measurement noise is white: its periodogram is flat, exponentially distributed
+            # about its mean. Estimate that mean from the upper half of the band and keep only
+            # bins far above it, so the noise's share of the power does not read as bandwidth.
+            floor = np.median(power[len(power) // 2 :]) / np.log(2.0)
+            power = np.where(power > self.NOISE_MARGIN * floor, power, 0.0)
             if power.sum() <= 0:
                 continue
             freq = np.fft.rfftfreq(n, h)

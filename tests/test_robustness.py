@@ -258,14 +258,6 @@ def _clean_window(name: str) -> int:
     return WeakForm().resolve(clean.t, clean.states, n_terms=len(library)).window
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="WeakForm.resolve takes the 99.9 % power bandwidth of the noisy states: white noise of "
-    "5 % of the std carries 0.25 % of the power spread up to Nyquist, so the bandwidth lands in the "
-    "noise and the window falls to its 4-sample minimum (315 on the clean record; 287, 199, 128, 41 "
-    "and 5 at 1, 2, 2.5, 3 and 3.5 % noise)",
-)
 def test_weak_window_is_set_by_the_signal_not_the_noise():
     """At 5 % noise the automatic window should stay near the one chosen on noise-free data."""
     system, clean = _paper_record("linear")
@@ -280,13 +272,6 @@ def _linear_at_five_percent(derivative):
     return compare_to_truth(model, system, clean), model
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="the automatic weak-form window collapses to 4 samples at 5 % noise (see "
-    "test_weak_window_is_set_by_the_signal_not_the_noise), so the targets are differenced noise "
-    "and x2' = -3.0e5 x1|x1| comes out instead of F - 1e4 x1 - 20 x2",
-)
 def test_five_percent_noise_linear_oscillator():
     """The linear oscillator at 5 % noise with default options should be recovered exactly."""
     truth, model = _linear_at_five_percent("weak")
@@ -295,8 +280,8 @@ def test_five_percent_noise_linear_oscillator():
 
 def test_five_percent_noise_is_not_beyond_the_data():
     """With the weak-form window the automatic rule picks on noise-free data, the same 5 %-noise
-    record gives the exact linear oscillator (coefficients within 2 %): the failure above is the
-    window choice, not a lack of information."""
+    record gives the exact linear oscillator (coefficients within 2 %): the automatic window (chosen
+    above the noise floor) and this one agree."""
     truth, model = _linear_at_five_percent(WeakForm(window=_clean_window("linear")))
     assert truth.exact_support, (truth.missing, truth.spurious, str(model))
     assert truth.max_error() < 0.02, _errors(truth)
