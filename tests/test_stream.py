@@ -190,3 +190,20 @@ def test_data_errors_match_the_in_memory_path(record):
         stream_stats(record.slice(0, 30), LIB, derivative="point")
     with pytest.raises(LibraryError, match=r"library uses variables \['y'\] that are not in the data"):
         stream_stats(record, paper(symbols("x1 y"), (), degree=1), derivative="point")
+
+
+# -------------------------------------------------------------------------------------------- batch
+
+
+def test_batch_gives_the_models_of_separate_fits(record):
+    from symsbl import identify
+    from symsbl.batch import identify_many
+
+    other = record.slice(0, 3000)
+    models = identify_many([record, chunked(_pieces(other, (1000,)))], LIB, n_jobs=2, derivative="central")
+    assert str(models[0]) == str(identify(record, LIB, derivative="central"))
+    assert str(models[1]) == str(identify(other, LIB, derivative="central"))
+    with pytest.raises(DataError, match="n_jobs: expected an integer >= 1, received 0"):
+        identify_many([record], LIB, n_jobs=0)
+    with pytest.raises(DataError, match="datasets: expected a non-empty sequence of records"):
+        identify_many([], LIB)
