@@ -133,7 +133,9 @@ def _response(ax, model: IdentifiedModel, validation: Validation, state: str, wi
     ax.set_xlabel("t (s)")
     ax.set_ylabel(state)
     ax.set_xlim(t0, t1)
-    ax.legend(loc="upper right", fontsize="small")
+    low, high = ax.get_ylim()
+    ax.set_ylim(low, high + 0.25 * (high - low))  # room for the legend above the data
+    ax.legend(loc="upper center", ncols=3, fontsize="small", frameon=False)
 
 
 def _coefficients(ax, equation: Equation) -> None:
@@ -153,6 +155,8 @@ def _coefficients(ax, equation: Equation) -> None:
     right.set_ylabel("variance")
     for axis in (ax, right):
         _headroom(axis, 0.35)
+    low, high = ax.get_ylim()
+    ax.set_ylim(min(low, np.abs(equation.coefs).min() / 10), high)  # the smallest bar stays visible
     handles = ax.get_legend_handles_labels()
     more = right.get_legend_handles_labels()
     ax.legend(handles[0] + more[0], handles[1] + more[1], loc="upper left", fontsize="small")
