@@ -81,6 +81,23 @@ def _cmd_simulate(args) -> int:
     return 0 if result.status == "ok" else 1
 
 
+def _cmd_discrepancy(args) -> int:
+    from .data import read_trajectory
+    from .discrepancy import discrepancy
+
+    states, inputs = _names(args.states), _names(args.inputs)
+    traj = read_trajectory(args.data, states=states, inputs=inputs, time=args.time)
+    heldout = None
+    if args.held_out:
+        heldout = read_trajectory(args.held_out, states=states, inputs=inputs, time=args.time)
+    report = discrepancy(traj, args.base, heldout=heldout, error=args.error)
+    print(report)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report.to_json(), indent=2, default=float) + "\n")
+        print(f"report written to {args.json}")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -113,6 +130,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time", default="t", help="time column (default: t)")
     p.add_argument("--json", help="write the errors as JSON to this file")
     p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("discrepancy", help="find the physical effect a model is missing, add it, show the gain")
+    p.add_argument("data", help="training record: CSV with a header row, .npz or .mat")
+    p.add_argument("--states", required=True, help="comma-separated state columns, e.g. x1,x2")
+    p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
+    p.add_argument("--base", required=True, help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
+    p.add_argument("--held-out", help="held-out record (default: the last 30 %% of DATA)")
+    p.add_argument("--error", default="simulation", help="held-out error: simulation (default) or equation")
+    p.add_argument("--time", default="t", help="time column (default: t)")
+    p.add_argument("--json", help="write the report as JSON to this file")
+    p.set_defaults(func=_cmd_discrepancy)
 
     p = sub.add_parser("demo", help="the paper's five systems end to end")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
