@@ -3,7 +3,7 @@
 The fast RVM (:mod:`symsbl.rvm`) is a greedy optimiser of the penalised evidence. This module
 refines its answer for one state equation:
 
-- :class:`SupportSearch` tries single additions and single swaps, each scored by the RVM's own
+- :class:`SupportSearch` tries single additions, deletions and swaps, each scored by the RVM's own
   objective (log evidence minus the per-term penalty) refitted on the candidate support;
 - :func:`search_support` then applies parsimony among near-equivalent candidates: a kept term is
   replaced by a simpler one (:func:`complexity`) when the evidence cannot tell them apart, and the
@@ -81,7 +81,7 @@ class SupportSearch:
     leave it in a local optimum that needs two moves to escape (``sin(x2) + 1107 x2**3``
     mimicking ``x2``). The search scores a support by the RVM's own objective, the log
     evidence minus the per-term penalty, refitting the RVM on the support's columns only, and
-    tries single additions and single swaps. Candidates are pre-filtered by their correlation
+    tries single additions, deletions and swaps. Candidates are pre-filtered by their correlation
     with the residual (for additions) or with the residual plus the swapped term's
     contribution (for swaps), ``n_candidates`` each, plus every column nearly collinear with
     the swapped term.
@@ -129,6 +129,8 @@ class SupportSearch:
             trials = [active + [i] for i in self._top(corr, active)]
             for pos, j in enumerate(active):
                 others = active[:pos] + active[pos + 1 :]
+                if others:
+                    trials.append(others)
                 pool = self._top(corr + mu[j] * G[:, j], active) + self.collinear(j, active)
                 trials += [others + [i] for i in dict.fromkeys(pool)]
             improved = None
@@ -143,12 +145,28 @@ class SupportSearch:
 
 
 def search_support(first: RVM, stats, target, keys, template, tol):
-    """Local search from the RVM's support, then parsimony among near-equivalents.
+    """Local search from the RVM's support (and from its supports on parsimony-ordered subsets of
+    the library), then parsimony among near-equivalents.
 
     Returns the support and, per kept column, the near-equivalent columns whose swap costs
     less than ``tol`` nats (the simplest of each group is the one kept)."""
     search = SupportSearch(stats, target, template, first.prune_nats_)
     best, active, _ = search.run([int(i) for i in first.active_])
+    # Multi-start: the same search from the RVM's answer on nested candidate sets ordered by
+    # parsimony (polynomials only, then with |.|, sign, sin/cos, everything). A first pass over
+    # the whole library can settle in a basin of look-alike terms (x1|x1|, x1^3|x1|, sign(x1)
+    # for x1 and x1^3) that single moves cannot leave.
+    ranks = np.array([k[0] for k in keys])
+    for rank in np.unique(ranks)[:-1]:
+        cols = [int(i) for i in np.flatnonzero(ranks <= rank)]
+        if not cols:
+            continue
+        start = fit_rvm(template, subset_stats(stats, cols, target), 0, first.prune_nats_)
+        if len(start.active_) == 0:
+            continue
+        value, kept, _ = search.run([cols[i] for i in start.active_])
+        if value > best + 1e-6:
+            best, active = value, kept
     alternatives: dict[int, list[int]] = {}
     for _ in range(len(active) + 1):
         changed = False

@@ -147,16 +147,11 @@ def test_cubic_stiffness_with_coulomb_friction(kc, forcing):
         assert truth.max_error(min_share=0.05) < 0.01, (seed, _errors(truth))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="the support search stops in a local optimum: the first RVM pass admits x1*|x1|, "
-    "x1**3*|x1|, sign(x1), x2*|x1|, x2**3, ... in place of x1, x1**3 and x2; the true support scores "
-    "-73.5 (penalised log evidence) against -78.5 for the 10-term answer, but reaching it needs "
-    "several terms removed at once and the search only adds or swaps one",
-)
+@pytest.mark.slow
 def test_cubic_stiffness_with_strong_coulomb_friction_under_a_sine():
-    """kc = 10 N under the 10 Hz sine, noise seed 17: the true equations should be found."""
+    """kc = 10 N under the 10 Hz sine, noise seed 17: the first RVM pass settles among look-alikes
+    (x1|x1|, x1**3|x1|, sign(x1), ...; penalised log evidence -78.5 against -73.5 for the truth);
+    the multi-start support search must still reach the true equations."""
     system = duffing_coulomb(10.0)
     clean = _duffing_coulomb_record(10.0, "sine", 0)
     model = identify(clean.with_noise(0.004, seed=17), paper(system.states, system.inputs, degree=5))
