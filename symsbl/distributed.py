@@ -33,7 +33,7 @@ from .identify import RegressionStats, _check_variation, _columns, fit_stats
 from .library import Library
 from .model import IdentifiedModel
 from .rvm import RVM, GramStats
-from .stream import _Block, _block_stats, _halo
+from .stream import RESOLVE_SAMPLES, _Block, _block_stats, _halo
 
 __all__ = ["dask_stats", "identify_dask", "from_delayed"]
 
@@ -229,7 +229,8 @@ def dask_stats(
         Names of the state and input columns, in order.
     derivative : str or derivative strategy
         As in :func:`symsbl.stream.stream_stats`; an automatic weak-form window is resolved
-        from the first ``block_samples`` samples of the first record (computed eagerly).
+        from the first :data:`symsbl.stream.RESOLVE_SAMPLES` samples of the first record
+        (computed eagerly), as the single-process path does.
     block_samples : int
         Samples per mapped slice (each slice is one task).
     chunk_size : int
@@ -256,7 +257,7 @@ def dask_stats(
         raise DataError(f"block_samples: expected an integer >= 2, received {block_samples!r}.")
     n_columns = 1 + len(names[0]) + len(names[1])
     items = _as_records(records, n_columns, names)
-    head = np.asarray(items[0][: min(block_samples, items[0].shape[0])].compute(scheduler=scheduler), dtype=float)
+    head = np.asarray(items[0][: min(RESOLVE_SAMPLES, items[0].shape[0])].compute(scheduler=scheduler), dtype=float)
     t, X, U = validate(head[:, 0], head[:, 1 : n_columns - len(names[1])], head[:, n_columns - len(names[1]) :],
                        *names, source="records[0]")
     _columns(Trajectory(t, X, U, *names), library)  # names the missing variables, if any

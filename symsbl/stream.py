@@ -24,8 +24,8 @@ Samples are gathered into blocks. Every regression row needs a few neighbouring 
 Rows are therefore the rows of the whole record, computed in the same arithmetic, and the
 statistics equal those of :func:`~symsbl.identify.regression_stats` up to the order in which
 partial sums are added. A :class:`~symsbl.derivatives.WeakForm` without a window is resolved
-once, from the first block of the first record (the whole record when it is shorter than
-``block_samples``), and then stays fixed for every record.
+once, from the first block of the first record (at most :data:`RESOLVE_SAMPLES` samples; the
+whole record when it is shorter), and then stays fixed for every record.
 
 Blocks are independent once their halo is attached, so ``n_jobs=2`` reduces two blocks at once
 on two threads: the compiled dictionary evaluation and numpy's reductions release the GIL.
@@ -57,6 +57,9 @@ __all__ = ["ChunkedRecord", "chunked", "open_npz", "stream_stats", "identify_str
 
 #: Samples gathered per block when a record arrives in smaller chunks (8 s at 32768 Hz).
 BLOCK_SAMPLES = 2**18
+#: An automatic weak-form window is resolved from at most this many samples at the start of
+#: the first record (shared with :mod:`symsbl.distributed`, so both resolve the same window).
+RESOLVE_SAMPLES = 2**18
 
 
 # ------------------------------------------------------------------------------------------ records
@@ -528,7 +531,8 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
             _columns(probe, library)  # names the missing variables, if any
             order = list(names[0]) + list(names[1])
             columns = [order.index(v) for v in library.variable_names]
-            diff = diff.resolve(np.arange(len(X)) * (reader.h or 1.0), X, n_terms=len(library))
+            head = X[:RESOLVE_SAMPLES]
+            diff = diff.resolve(np.arange(len(head)) * (reader.h or 1.0), head, n_terms=len(library))
             halo = _halo(diff)
         if carry is not None:
             X = np.concatenate([carry[0], X])
