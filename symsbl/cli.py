@@ -101,7 +101,12 @@ def _cmd_discrepancy(args) -> int:
 def _cmd_demo(args) -> int:
     from .demo import run_demo
 
-    run_demo(seed=args.seed, quick=args.quick)
+    results = run_demo(seed=args.seed, quick=args.quick)
+    if args.plots:
+        from .demo import write_figures
+
+        for path in write_figures(results, args.plots, seed=args.seed):
+            print(f"figure written to {path}")
     return 0
 
 
@@ -145,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the paper's five systems end to end")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     p.add_argument("--quick", action="store_true", help="shorter records (for a fast check)")
+    p.add_argument("--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR (needs symsbl[plot])")
     p.set_defaults(func=_cmd_demo)
     return parser
 

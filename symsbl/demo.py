@@ -19,7 +19,7 @@ from .signals import Multisine, Sine
 from .simulate import simulate, time_grid
 from .validate import TruthComparison, Validation, compare_to_truth, validate_model
 
-__all__ = ["CASES", "DemoResult", "run_case", "run_demo"]
+__all__ = ["CASES", "DemoResult", "run_case", "run_demo", "write_figures"]
 
 FS = 32768.0
 NOISE = 0.004
@@ -118,3 +118,31 @@ def run_demo(*, seed: int = 0, quick: bool = False, out=print) -> list[DemoResul
         "(e.g. Coulomb friction, about 0.01 % of the variance). NRMSE against the noisy held-out record "
         f"(noise floor {100 * NOISE:g} %).")
     return results
+
+
+def write_figures(results: list[DemoResult], directory, *, n_band: int = 30, seed: int = 0) -> list:
+    """Write the paper's Figure 2 for each demo result as ``<directory>/<system>.png``.
+
+    The held-out record is re-simulated with a Monte Carlo band of ``n_band`` draws from the
+    coefficient posterior. Needs the ``plot`` extra (matplotlib).
+
+    Returns
+    -------
+    list of pathlib.Path
+        The files written.
+    """
+    from pathlib import Path
+
+    from .plots import figure2
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    written = []
+    for r in results:
+        check = validate_model(r.model, r.heldout.measured, n_band=n_band, seed=seed)
+        fig = figure2(r.model, check)
+        slug = "_".join("".join(c if c.isalnum() else " " for c in r.name.lower()).split())
+        path = directory / f"{slug}.png"
+        fig.savefig(path, dpi=100)
+        written.append(path)
+    return written

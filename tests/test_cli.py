@@ -123,8 +123,11 @@ def test_module_entry_point_help():
 
 
 @pytest.mark.slow
-def test_demo_quick(capsys):
-    code, out, err = run(["demo", "--quick"], capsys)
+def test_demo_quick(capsys, tmp_path):
+    code, out, err = run(["demo", "--quick", "--plots", str(tmp_path)], capsys)
     assert code == 0, err
     table = out[out.index("system "):]
     assert table.count("exact") == 5 and "WRONG" not in table
+    written = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert written == ["bouc_wen_n_2.png", "coulomb_friction.png", "duffing.png", "linear.png", "quadratic_damping.png"]
+    assert all((tmp_path / name).stat().st_size > 10_000 for name in written)
