@@ -32,7 +32,7 @@ def _one(data, library: Library, kwargs: dict) -> IdentifiedModel:
     return (identify_stream if chunked else identify)(data, library, **kwargs)
 
 
-def identify_many(datasets: Sequence, library: Library, *, n_jobs: int = 2, **kwargs) -> list[IdentifiedModel]:
+def identify_many(datasets: Sequence, library: Library, *, n_jobs: int = 1, **kwargs) -> list[IdentifiedModel]:
     """Identify one model per dataset, ``n_jobs`` datasets at a time.
 
     Parameters
@@ -43,8 +43,10 @@ def identify_many(datasets: Sequence, library: Library, *, n_jobs: int = 2, **kw
         of records (identified with :func:`symsbl.stream.identify_stream`).
     library : Library
         Candidate terms, shared by every fit (compiled once).
-    n_jobs : int
-        Worker threads; 1 fits the datasets one after the other in the calling thread.
+    n_jobs : int, default 1
+        Worker threads; 1 fits the datasets one after the other in the calling thread. On a
+        2-core machine a batch of 4 s Duffing records ran 0.66x as fast on 2 threads as in a
+        loop (the fits are GIL-bound), so raise it only for statistics-heavy fits.
     **kwargs
         Passed to every fit (``derivative``, ``rvm``, ``chunk_size``, ``jit``, ...).
 
