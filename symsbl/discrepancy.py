@@ -22,7 +22,18 @@ Errors in the regressors (noise on the measured states), finite-difference effec
 fitted-coefficient bias break that ideal, so the threshold is also measured by a parametric
 bootstrap: the current model is simulated on the training input, noise of the level measured in
 the data (:func:`noise_levels`) is added to every channel, and the whole scoring is rerun; the
-threshold is ``max(floor_nats, bootstrap_factor * max null gain)``.
+threshold is ``max(floor_nats, bootstrap_factor * max null gain)``. When the residual rows are
+correlated (a real record's unmodelled dynamics), the statistics are scaled by the effective
+sample fraction ``N_eff / N`` before scoring (:class:`Disagreement`).
+
+Measured (oscillator m = 1, c = 20, k = 1e4; 3 s of a 100 N, 10 Hz sine at 16384 Hz; 0.4 % noise;
+7 effects, 15 candidates): under "nothing missing" the largest gain over the catalogue stayed below
+6 nats in 600 runs (white noise on the states, noise on every channel, a Duffing model that already
+has its cubic term; 200 seeds each; the bootstrap raised the threshold to 24.5 nats at most) and
+nothing was added. Hidden effects that move the training re-simulation by less than 2x the noise
+gain 230-440 nats, 20-90 nats ahead of the runner-up. Ten times smaller ones (cubic stiffness,
+Coulomb friction, quadratic damping; 3 seeds each) ended as "nothing missing", "ambiguous" or the
+right name, never a wrong one.
 
 The held-out error is the simulation NRMSE averaged over the states (``error="simulation"``)
 or, for closed-loop or drifting plants, the NRMSE of the velocity equation on the held-out
@@ -32,7 +43,6 @@ weak-form rows (``error="equation"``, a one-step force error).
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -42,7 +52,7 @@ import sympy as sp
 
 from .catalogue import CATALOGUE, Effect
 from .data import Trajectory
-from .derivatives import WeakForm, get_differentiator
+from .derivatives import get_differentiator
 from .errors import DataError, LibraryError, SimulationError
 from .evaluator import Evaluator
 from .identify import regression_stats
@@ -53,7 +63,7 @@ from .selection import subset_stats
 from .signals import Sampled
 from .simulate import simulate
 from .symbolic import sympy_to_casadi
-from .validate import nrmse, validate_model
+from .validate import validate_model
 
 __all__ = [
     "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport",
@@ -384,6 +394,10 @@ class _Design:
             self._stats[key] = (traj, regression_stats(traj, self.library, derivative=self.derivative).stats)
         return self._stats[key][1]
 
+    def forget(self, traj: Trajectory) -> None:
+        """Drop the statistics of a record no longer needed (a bootstrap replicate)."""
+        self._stats.pop(id(traj), None)
+
     def fit(self, traj, k, cols) -> RVM:
         rvm = RVM(free=tuple(range(len(cols))), prune_nats=None)
         stats = subset_stats(self.stats(traj), cols, k)
@@ -490,7 +504,7 @@ def _effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
 
 
 # ------------------------------------------------------------------------------------- scoring
-def _score(design, structure, traj, velocity, candidates, input_cols) -> list[tuple]:
+def _score(design, structure, traj, velocity, candidates) -> list[tuple]:
     """Evidence gain of every candidate variant: ``(variant, gain, fit, cols)``."""
     k = list(traj.state_names).index(velocity)
     base_cols = structure[velocity]
@@ -545,7 +559,8 @@ def _null_gains(design, structure, model, train, velocity, candidates, noise, n_
         if U is not None:
             inputs = clean.inputs + rng.standard_normal(U.shape) * [noise[n] for n in train.input_names]
         fake = Trajectory(train.t, states, inputs, train.state_names, train.input_names)
-        gains = [g for _, g, _, _ in _best_per_effect(_score(design, structure, fake, velocity, candidates, None)).values()]
+        gains = [g for _, g, _, _ in _best_per_effect(_score(design, structure, fake, velocity, candidates)).values()]
+        design.forget(fake)
         out.append(max([g for g in gains if np.isfinite(g)], default=0.0))
     return out
 
@@ -720,7 +735,7 @@ class _Workflow:
         eq = model.equation(self.v)
         input_coef = eq.terms[self.input_terms[0]].coef if len(self.input_terms) == 1 else None
         out = []
-        scored = _score(self.design, self.structure, self.data, self.v, self.candidates, None)
+        scored = _score(self.design, self.structure, self.data, self.v, self.candidates)
         for variant, gain, fit, cols in _best_per_effect(scored).values():
             e = variant.effect
             if fit is None:

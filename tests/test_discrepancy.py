@@ -271,3 +271,17 @@ def test_catalogue_errors_and_lookup():
     with pytest.raises(DataError, match=r"cutoff must be in \(0, 500\) Hz"):
         position_record(np.arange(10) * 1e-3, np.zeros(10), np.zeros(10), cutoff=600.0)
     assert len(CATALOGUE) >= 7
+
+
+def test_a_close_runner_up_gives_ambiguous_and_no_heldout_gain_is_not_added():
+    force, _, held_input = HIDDEN["coulomb_friction"]
+    train, held = records(oscillator(force), held_input, seed=2)
+    ambiguous = discrepancy(train, BASE, heldout=held, n_bootstrap=0, margin_nats=1e6)
+    (step,) = ambiguous.steps
+    runner = next(c for c in step.scores[1:] if c.admissible)
+    assert step.decision == "ambiguous" and not ambiguous.added
+    assert ambiguous.verdict.startswith(f"ambiguous between coulomb_friction and {runner.effect}")
+    same_level = records(oscillator(force), Sine(100.0, 10.0), seed=2)[1]
+    unconfirmed = discrepancy(train, BASE, heldout=same_level, n_bootstrap=0, min_improvement=0.9)
+    assert unconfirmed.steps[0].decision == "no held-out gain" and not unconfirmed.added
+    assert "does not lower the held-out error enough" in unconfirmed.verdict
