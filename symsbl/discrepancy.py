@@ -43,12 +43,10 @@ weak-form rows (``error="equation"``, a one-step force error).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Sequence
 
 import casadi as ca
 import numpy as np
-import sympy as sp
 
 from .catalogue import CATALOGUE, Effect
 from .data import Trajectory
@@ -57,13 +55,14 @@ from .errors import DataError, LibraryError, SimulationError
 from .evaluator import Evaluator
 from .identify import regression_stats
 from .library import Library
-from .model import Equation, IdentifiedModel, TermEstimate, format_uncertain
+from .model import Equation, IdentifiedModel, TermEstimate
 from .rvm import RVM
 from .selection import subset_stats
 from .signals import Sampled
 from .simulate import simulate
-from .symbolic import sympy_to_casadi
 from .validate import validate_model
+from .discrepancy_data import _check_traj, _split, noise_levels, parse_base, position_record
+from .discrepancy_results import Disagreement, DiscrepancyReport, DiscrepancyStep, EffectScore
 
 __all__ = [
     "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport",
@@ -73,299 +72,6 @@ __all__ = [
 ERROR_MEASURES = ("simulation", "equation")
 
 
-# ------------------------------------------------------------------------------------- the base
-def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str] = ()) -> dict[str, tuple]:
-    """Read a model structure such as ``"x1: x2; x2: F, x1, x2"``.
-
-    Parameters
-    ----------
-    text : str
-        Per state, ``state: term, term, ...``, states separated by ``;``. Terms are expressions
-        of the state and input names (sympy syntax: ``x2*Abs(x2)``, ``sign(v)``); ``1`` is a
-        constant offset. Every state needs an equation.
-    state_names, input_names : sequence of str
-
-    Returns
-    -------
-    dict
-        State name -> tuple of casadi.SX terms, in state order.
-
-    Raises
-    ------
-    LibraryError
-        Naming the part of ``text`` that is wrong.
-    """
-    symbols = {n: ca.SX.sym(n) for n in list(state_names) + list(input_names)}
-    local = {n: sp.Symbol(n, real=True) for n in symbols}
-    local.update({"sign": sp.sign, "Abs": sp.Abs, "abs": sp.Abs})
-    out: dict[str, list] = {}
-    for part in filter(None, (p.strip() for p in str(text).split(";"))):
-        lhs, sep, rhs = part.partition(":")
-        lhs = lhs.strip()
-        if not sep or not rhs.strip():
-            raise LibraryError(
-                f"--base: expected 'state: term, term' for each state, separated by ';'; received {part!r}."
-            )
-        if lhs not in state_names:
-            raise LibraryError(f"--base: {lhs!r} is not a state; the states are {list(state_names)}.")
-        if lhs in out:
-            raise LibraryError(f"--base: state {lhs!r} has two equations; give each state one 'state: terms' part.")
-        terms = []
-        for raw in filter(None, (r.strip() for r in rhs.split(","))):
-            try:
-                expr = sp.sympify(raw, locals=local)
-            except (sp.SympifyError, SyntaxError, TypeError, AttributeError):
-                raise LibraryError(f"--base: cannot read the term {raw!r} of state {lhs!r}.") from None
-            unknown = sorted(str(s) for s in expr.free_symbols if str(s) not in symbols)
-            if unknown:
-                raise LibraryError(
-                    f"--base: the term {raw!r} of state {lhs!r} uses {unknown}, which are not among the "
-                    f"states {list(state_names)} or inputs {list(input_names)}."
-                )
-            terms.append(ca.SX(1) if expr.is_number else sympy_to_casadi(expr, symbols))
-        out[lhs] = terms
-    missing = [s for s in state_names if s not in out]
-    if missing:
-        raise LibraryError(f"--base: no terms for the states {missing}; give every state 'state: terms'.")
-    return {s: tuple(out[s]) for s in state_names}
-
-
-def noise_levels(traj: Trajectory) -> dict[str, float]:
-    """White-noise standard deviation of each state and input, from third differences.
-
-    ``std(diff(x, 3)) = sqrt(20) sigma`` for white noise, while a signal sampled well above its
-    bandwidth contributes almost nothing to the third difference; a median absolute deviation
-    makes the estimate robust to the rare jumps of a discontinuous signal.
-    """
-    out = {}
-    for name in list(traj.state_names) + list(traj.input_names):
-        d3 = np.diff(traj.column(name), 3)
-        out[name] = float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
-    return out
-
-
-def position_record(t, position, inputs, *, cutoff: float, names=("q", "v"), input_names=("tau",)) -> Trajectory:
-    """A (position, velocity) record from a measured position, for inverse models.
-
-    The position is low-passed by a zero-phase 4th-order Butterworth filter at ``cutoff`` Hz
-    (an encoder's quantisation is white above the motion's band) and differentiated by
-    central differences; the weak form then differentiates the velocity once more.
-    This is the recipe of the EMPS benchmark (Janot et al., 2019), which uses 100 Hz.
-
-    Parameters
-    ----------
-    t : array_like, shape (n_samples,)
-    position : array_like, shape (n_samples,)
-    inputs : array_like, shape (n_samples,) or (n_samples, n_inputs)
-    cutoff : float
-        Filter cut-off in Hz, below the Nyquist frequency.
-    names, input_names : tuple of str
-    """
-    from scipy.signal import butter, filtfilt
-
-    t = np.asarray(t, dtype=float)
-    nyquist = 0.5 / float(np.mean(np.diff(t)))
-    if not 0 < cutoff < nyquist:
-        raise DataError(f"cutoff must be in (0, {nyquist:g}) Hz (the Nyquist frequency); received {cutoff!r}.")
-    b, a = butter(4, cutoff / nyquist)
-    q = filtfilt(b, a, np.asarray(position, dtype=float))
-    return Trajectory(t, np.column_stack([q, np.gradient(q, t)]), inputs, tuple(names), tuple(input_names))
-
-
-# ---------------------------------------------------------------------------------- results
-@dataclass(frozen=True)
-class Disagreement:
-    """Where a model and the data disagree.
-
-    Attributes
-    ----------
-    residual_nrmse : float
-        RMS of the velocity-equation residual over the training weak-form rows / std of the target.
-    effective_fraction : float
-        ``N_eff / N = 1 / (1 + 2 sum_j rho_j)`` from the residual's autocorrelation (lags summed
-        while ``|rho_j| > 0.05``): 1 for independent rows; below 1 when the residual carries
-        structure correlated across windows (a real record's unmodelled dynamics), which the
-        evidence would otherwise over-count. The evidence of the step uses statistics scaled by it.
-    regions : tuple of (str, float, float)
-        ``(region, share of rows, share of residual energy)`` for velocity reversals, peak speed,
-        large displacement; a region whose energy share exceeds its row share concentrates it.
-    jump, jump_z : float
-        Mean residual just above ``v = 0`` minus just below (target units) and its z-score: a jump
-        is the fingerprint of friction.
-    residual_map : tuple of ndarray
-        ``(x_edges, v_edges, mean residual (n_x, n_v))`` over the phase plane (NaN in empty bins).
-    error_time : tuple of ndarray
-        ``(segment mid-times, NRMSE per segment)`` of the held-out simulation (or equation) error.
-    summary : str
-        The above in words.
-    """
-
-    residual_nrmse: float
-    effective_fraction: float
-    regions: tuple
-    jump: float
-    jump_z: float
-    residual_map: tuple = field(repr=False)
-    error_time: tuple = field(repr=False)
-    summary: str = ""
-
-
-@dataclass(frozen=True)
-class EffectScore:
-    """The score of one catalogue effect in one iteration.
-
-    Attributes
-    ----------
-    effect, label, description, family : str
-        Catalogue name, name with the shape value, physical words, family.
-    terms : tuple of str
-        The term(s) added to the velocity equation.
-    evidence_gain : float
-        Log-evidence change (nats) of adding the term(s); for a grid effect, of the best grid
-        point minus ``log(grid size)``.
-    coef, std : float
-        Posterior mean and standard deviation of the (first) term's coefficient after the refit.
-    physical : float or None
-        The coefficient as a force per unit term, ``-coef / coef(input)`` (None without a single
-        input term).
-    admissible : bool
-    reason : str
-        Why it is not admissible or not in the model, "" otherwise.
-    error_after : float or None
-        Held-out error of the refitted model with this effect (None when not evaluated).
-    shape : float or None
-    """
-
-    effect: str
-    label: str
-    description: str
-    family: str
-    terms: tuple
-    evidence_gain: float
-    coef: float
-    std: float
-    physical: float | None
-    admissible: bool
-    reason: str
-    error_after: float | None
-    shape: float | None = None
-
-
-@dataclass(frozen=True)
-class DiscrepancyStep:
-    """One iteration: the model, where it disagrees, the scores and the decision.
-
-    Attributes
-    ----------
-    model : IdentifiedModel
-        The current model, fitted on the training record.
-    error_train, error_heldout : float
-        Its error on the training and held-out records.
-    disagreement : Disagreement
-    scores : tuple of EffectScore
-        Sorted by evidence gain, best first.
-    threshold : float
-        The evidence gain an effect had to clear (nats).
-    null_gains : tuple of float
-        Largest gain of any effect on each bootstrap record simulated from the current model.
-    decision : {"added", "nothing missing", "ambiguous", "no held-out gain"}
-    verdict : str
-    added : EffectScore or None
-    model_after : IdentifiedModel or None
-    error_after : float or None
-    """
-
-    iteration: int
-    model: IdentifiedModel
-    error_train: float
-    error_heldout: float
-    disagreement: Disagreement
-    scores: tuple
-    threshold: float
-    null_gains: tuple
-    decision: str
-    verdict: str
-    added: EffectScore | None = None
-    model_after: IdentifiedModel | None = None
-    error_after: float | None = None
-
-
-@dataclass(frozen=True)
-class DiscrepancyReport:
-    """The outcome of :func:`discrepancy`.
-
-    Attributes
-    ----------
-    initial, final : IdentifiedModel
-    steps : tuple of DiscrepancyStep
-    verdict : str
-    error_measure : str
-        ``"simulation"`` or ``"equation"``.
-    noise : dict
-        Estimated noise level per channel.
-    """
-
-    initial: IdentifiedModel
-    final: IdentifiedModel
-    steps: tuple
-    verdict: str
-    error_measure: str
-    noise: dict = field(default_factory=dict)
-
-    @property
-    def added(self) -> list[EffectScore]:
-        """The effects added, in order."""
-        return [s.added for s in self.steps if s.added is not None]
-
-    def to_json(self) -> dict:
-        """``{"added": [...], "verdict": ..., "final": <identify JSON>, "steps": [...]}``."""
-        added = [
-            {"effect": s.added.effect, "term": ", ".join(s.added.terms), "coef": s.added.coef,
-             "std": s.added.std, "evidence_gain": s.added.evidence_gain, "physical": s.added.physical,
-             "description": s.added.description, "error_before": s.error_heldout, "error_after": s.error_after}
-            for s in self.steps if s.added is not None
-        ]
-        steps = [
-            {"iteration": s.iteration, "decision": s.decision, "verdict": s.verdict, "threshold": s.threshold,
-             "null_gains": list(s.null_gains), "error_train": s.error_train, "error_heldout": s.error_heldout,
-             "where": s.disagreement.summary,
-             "scores": [{"effect": c.label, "evidence_gain": c.evidence_gain, "coef": c.coef, "std": c.std,
-                         "admissible": c.admissible, "error_after": c.error_after} for c in s.scores]}
-            for s in self.steps
-        ]
-        return {"added": added, "verdict": self.verdict, "final": self.final.to_json(),
-                "error_measure": self.error_measure, "steps": steps}
-
-    def __str__(self) -> str:
-        lines = ["model before:", _indent(str(self.initial))]
-        for s in self.steps:
-            lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
-                         f"training, {100 * s.error_heldout:.3g} % held out")
-            lines.append("where it disagrees: " + s.disagreement.summary)
-            lines.append(f"candidates (threshold {s.threshold:.1f} nats; null gains "
-                         + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):")
-            lines.append(f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}")
-            for c in s.scores:
-                err = "-" if c.error_after is None else f"{100 * c.error_after:.3g} %"
-                coef = format_uncertain(c.coef, c.std) if np.isfinite(c.coef) else "-"
-                note = "" if c.admissible else f"  ({c.reason})"
-                lines.append(f"  {c.label:34s} {c.evidence_gain:12.1f} {coef:>22s} {err:>15s}{note}")
-            lines.append("decision: " + s.verdict)
-        lines += ["\nmodel after:", _indent(str(self.final))]
-        if self.steps:
-            first, last = self.steps[0], self.steps[-1]
-            after = last.error_after if last.error_after is not None else last.error_heldout
-            lines.append(f"held-out {self.error_measure} error: {100 * first.error_heldout:.3g} % before, "
-                         f"{100 * after:.3g} % after")
-        lines.append("verdict: " + self.verdict)
-        return "\n".join(lines)
-
-
-def _indent(text: str) -> str:
-    return "\n".join("  " + line for line in text.splitlines())
-
-
-# ---------------------------------------------------------------------------------- the design
 class _Design:
     """One library holding every base and candidate term, its columns, and the statistics of each
     record (computed once per record, shared by every fit of every iteration)."""
@@ -582,21 +288,6 @@ def _pair(base, state_names, displacement, velocity):
             "Pass velocity= (and displacement=) explicitly."
         )
     return displacement, velocity
-
-
-def _split(data: Trajectory, fraction: float = 0.7) -> tuple[Trajectory, Trajectory]:
-    cut = int(fraction * data.n_samples)
-    return data.slice(0, cut), data.slice(cut, None)
-
-
-def _check_traj(traj, what, names):
-    if not isinstance(traj, Trajectory):
-        raise DataError(f"{what} must be a Trajectory; received {type(traj).__name__}.")
-    if names is not None and (tuple(traj.state_names), tuple(traj.input_names)) != names:
-        raise DataError(
-            f"{what} must have the training record's states {list(names[0])} and inputs {list(names[1])}; "
-            f"received {list(traj.state_names)} and {list(traj.input_names)}."
-        )
 
 
 def discrepancy(
