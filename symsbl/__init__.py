@@ -6,15 +6,19 @@ symbolic ODE that can be printed, saved and re-simulated. See the README for a t
 """
 
 from . import systems
+from .batch import identify_many
+from .catalogue import Effect, catalogue
 from .data import Trajectory, read_trajectory, write_trajectory
+from .discrepancy import DiscrepancyReport, discrepancy
 from .derivatives import CentralDifference, PointDifference, SavitzkyGolay, WeakForm
 from .errors import DataError, LibraryError, SimulationError, SymsblError
 from .evaluator import Evaluator
-from .identify import identify, regression_stats
+from .identify import fit_stats, identify, regression_stats
 from .library import Library, custom, elementwise, inputs, paper, polynomial
 from .model import Equation, IdentifiedModel, TermEstimate
 from .rvm import RVM, GramStats
 from .signals import Chirp, FreeDecay, Multisine, Sampled, Sine
+from .stream import chunked, identify_stream, open_npz, stream_stats
 from .simulate import simulate, time_grid
 from .symbolic import casadi_to_sympy, symbols, sympy_to_casadi
 from .system import OdeSystem
@@ -23,46 +27,56 @@ from .validate import Validation, compare_to_truth, nrmse, validate_model
 __version__ = "0.1.0"
 
 __all__ = [
+    "casadi_to_sympy",
+    "catalogue",
     "CentralDifference",
     "Chirp",
+    "chunked",
+    "compare_to_truth",
+    "custom",
     "DataError",
+    "discrepancy",
+    "DiscrepancyReport",
+    "Effect",
+    "elementwise",
     "Equation",
     "Evaluator",
+    "fit_stats",
     "FreeDecay",
     "GramStats",
     "IdentifiedModel",
+    "identify",
+    "identify_many",
+    "identify_stream",
+    "inputs",
     "Library",
     "LibraryError",
     "Multisine",
-    "OdeSystem",
-    "PointDifference",
-    "RVM",
-    "Sampled",
-    "SavitzkyGolay",
-    "SimulationError",
-    "Sine",
-    "SymsblError",
-    "TermEstimate",
-    "Trajectory",
-    "Validation",
-    "WeakForm",
-    "__version__",
-    "casadi_to_sympy",
-    "compare_to_truth",
-    "custom",
-    "elementwise",
-    "identify",
-    "inputs",
     "nrmse",
+    "OdeSystem",
+    "open_npz",
     "paper",
+    "PointDifference",
     "polynomial",
     "read_trajectory",
     "regression_stats",
+    "RVM",
+    "Sampled",
+    "SavitzkyGolay",
     "simulate",
+    "SimulationError",
+    "Sine",
+    "stream_stats",
     "symbols",
     "sympy_to_casadi",
+    "SymsblError",
     "systems",
+    "TermEstimate",
     "time_grid",
+    "Trajectory",
     "validate_model",
+    "Validation",
+    "WeakForm",
     "write_trajectory",
+    "__version__",
 ]

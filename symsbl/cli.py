@@ -1,4 +1,4 @@
-"""Command line: ``symsbl identify``, ``symsbl simulate``, ``symsbl demo``.
+"""Command line: ``symsbl identify``, ``symsbl simulate``, ``symsbl discrepancy``, ``symsbl demo``.
 
 A thin front end: parsing, reading files, printing. The work is done by the library.
 """
