@@ -18,7 +18,8 @@ from .library import Library, custom, elementwise, inputs, paper, polynomial
 from .model import Equation, IdentifiedModel, TermEstimate
 from .rvm import RVM, GramStats
 from .signals import Chirp, FreeDecay, Multisine, Sampled, Sine
-from .stream import chunked, identify_stream, open_npz, stream_stats
+from .distributed import dask_stats, from_delayed, identify_dask
+from .stream import ChunkedRecord, chunked, identify_stream, open_npz, stream_stats
 from .simulate import simulate, time_grid
 from .symbolic import casadi_to_sympy, symbols, sympy_to_casadi
 from .system import OdeSystem
@@ -32,8 +33,10 @@ __all__ = [
     "CentralDifference",
     "Chirp",
     "chunked",
+    "ChunkedRecord",
     "compare_to_truth",
     "custom",
+    "dask_stats",
     "DataError",
     "discrepancy",
     "DiscrepancyReport",
@@ -43,9 +46,11 @@ __all__ = [
     "Evaluator",
     "fit_stats",
     "FreeDecay",
+    "from_delayed",
     "GramStats",
     "IdentifiedModel",
     "identify",
+    "identify_dask",
     "identify_many",
     "identify_stream",
     "inputs",

@@ -32,7 +32,7 @@ from .evaluator import Evaluator
 from .identify import RegressionStats, _check_variation, _columns, fit_stats
 from .library import Library
 from .model import IdentifiedModel
-from .rvm import RVM, GramStats
+from .rvm import RVM
 from .stream import RESOLVE_SAMPLES, _Block, _block_stats, _halo
 
 __all__ = ["dask_stats", "identify_dask", "from_delayed"]

@@ -112,7 +112,7 @@ class Evaluator:
             raise LibraryError("library: expected at least one term, received an empty library")
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
             raise LibraryError(f"chunk_size: expected a positive integer, received {chunk_size!r}")
-        if not any(jit is m for m in _JIT_MODES):
+        if not any(jit is m if isinstance(m, bool) else jit == m for m in _JIT_MODES):
             raise LibraryError(f"jit: expected one of {list(_JIT_MODES)}, received {jit!r}")
         if parallel not in PARALLEL:
             raise LibraryError(f"parallel: unknown strategy {parallel!r}; valid names: {sorted(PARALLEL)}")

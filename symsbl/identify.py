@@ -98,10 +98,13 @@ def _check_variation(traj: Trajectory) -> None:
             )
 
 
-def _row_chunks(traj, library, evaluator, diff, block) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _row_chunks(traj, library, evaluator, diff, chunk_size) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     Y = diff.targets(traj.t, traj.states)
     Z = _columns(traj, library)
     n_rows = len(Y)
+    # about chunk_size samples per block, whatever the number of samples behind one row
+    s0, s1 = diff.sample_span(0, 1)
+    block = max(1, chunk_size // max(1, s1 - s0 - 1))
     for r0 in range(0, n_rows, block):
         r1 = min(r0 + block, n_rows)
         s0, s1 = diff.sample_span(r0, r1)
@@ -121,7 +124,7 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     derivative : str or derivative strategy
         ``"weak"`` (default), ``"central"``, ``"point"``, ``"savgol"`` or a strategy instance.
     chunk_size : int
-        Rows per chunk: memory is ``O(chunk_size * n_terms + n_terms^2)`` whatever the length.
+        Samples per chunk: memory is ``O(chunk_size * n_terms + n_terms^2)`` whatever the length.
     jit : {"auto", True, False}
         Compile the dictionary with a C compiler when available.
     """
