@@ -112,7 +112,9 @@ def validate_model(
     data : Trajectory
         Held-out record with the model's states and inputs (matched by name).
     method : {"auto", "cvodes", "rk4"}
-        Integrator, see :func:`symsbl.simulate.simulate`.
+        Integrator, see :func:`symsbl.simulate.simulate`. ``"auto"`` uses RK4 with the input held
+        linear between samples when the record has inputs (CVODES would restart at every input
+        sample) and the simulator's own choice for free decay.
     substeps : int
         RK4 steps per sample.
     n_band : int
@@ -135,6 +137,12 @@ def validate_model(
         )
     system = model.to_system()
     signal = _input_signal(data, model)
+    if method == "auto" and signal is not None:
+        # A measured input is known at its samples only; held linear between them it has a
+        # kink at every sample, which makes CVODES cut its step at each one (measured: 0.9 s
+        # for 1 s at 32768 Hz, against 0.085 s for RK4 with the same linear hold, whose compiled
+        # step is also reused across the Monte Carlo draws).
+        method = "rk4"
     X = np.column_stack([data.column(n) for n in model.state_names])
     kw = dict(inputs=signal, x0=X[0], method=method, substeps=substeps, on_divergence="truncate")
     sim = simulate(system, data.t, **kw)
