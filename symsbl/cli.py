@@ -95,6 +95,11 @@ def _cmd_discrepancy(args) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(report.to_json(), indent=2, default=float) + "\n")
         print(f"report written to {args.json}")
+    if args.plot:
+        from .plots import discrepancy_figure
+
+        discrepancy_figure(report, heldout).savefig(args.plot, dpi=120)
+        print(f"figure written to {args.plot}")
     return 0
 
 
@@ -145,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--error", default="simulation", help="held-out error: simulation (default) or equation")
     p.add_argument("--time", default="t", help="time column (default: t)")
     p.add_argument("--json", help="write the report as JSON to this file")
+    p.add_argument("--plot", metavar="FILE", help="write the before/after, residual-map and evidence figure to FILE, "
+                   "e.g. report.png (needs symsbl[plot])")
     p.set_defaults(func=_cmd_discrepancy)
 
     p = sub.add_parser("demo", help="the paper's five systems end to end")

@@ -204,6 +204,20 @@ def test_cli_discrepancy_writes_the_json_contract(tmp_path, capsys):
     assert set(doc["final"]) >= {"states", "inputs", "equations"}
 
 
+def test_cli_discrepancy_writes_the_figure(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    force, _, held_input = HIDDEN["coulomb_friction"]
+    train, held = records(oscillator(force), held_input, seed=7)
+    write_trajectory(train, tmp_path / "train.npz")
+    write_trajectory(held, tmp_path / "held.npz")
+    png = tmp_path / "report.png"
+    code = main(["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
+                 "--base", BASE, "--held-out", str(tmp_path / "held.npz"), "--plot", str(png)])
+    assert code == 0
+    assert f"figure written to {png}" in capsys.readouterr().out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
 def test_cli_discrepancy_reports_a_bad_base(tmp_path, capsys):
     train, _ = records(systems.linear(), Sine(10.0, 10.0), seed=0)
     write_trajectory(train.slice(0, 4000), tmp_path / "train.npz")

@@ -126,3 +126,66 @@ def test_missing_matplotlib_says_how_to_install(duffing_case, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
     with pytest.raises(ImportError, match=r"pip install symsbl\[plot\]"):
         plots.coefficient_uncertainty(model)
+
+
+@pytest.fixture(scope="module")
+def friction_case():
+    """Hidden Coulomb friction under the 100 N, 10 Hz sine; held out at 10 N, as in test_discrepancy."""
+    system = symsbl.systems.coulomb(kc=1.0)
+    train = symsbl.simulate(system, symsbl.time_grid(3.0, 16384.0), inputs=symsbl.Sine(100.0, 10.0), method="rk4")
+    held = symsbl.simulate(system, symsbl.time_grid(1.5, 16384.0), inputs=symsbl.Sine(10.0, 10.0), method="rk4")
+    train, held = train.with_noise(0.004, seed=5), held.with_noise(0.004, seed=1005)
+    report = symsbl.discrepancy(train, "x1: x2; x2: F, x1, x2", heldout=held, n_bootstrap=0)
+    return report, held
+
+
+def test_discrepancy_figure_panels(friction_case, tmp_path):
+    report, held = friction_case
+    assert [a.effect for a in report.added] == ["coulomb_friction"]
+    fig = plots.discrepancy_figure(report, held)
+    assert len(fig.axes) == 4  # (a), (b), (c) and the colour bar of (b)
+    ax_a, ax_b, ax_c, _ = fig.axes
+    # (a) measured, before and after; the re-simulated error falls
+    assert [line.get_label().split(" ")[0] for line in ax_a.lines] == ["measured", "before", "after"]
+    before = symsbl.validate_model(report.initial, held, method="rk4")
+    after = symsbl.validate_model(report.final, held, method="rk4")
+    assert f"{100 * before.nrmse['x2']:.3g} %" in ax_a.lines[1].get_label()
+    assert after.nrmse["x2"] < before.nrmse["x2"] / 3
+    # (b) the residual map of the first step over displacement x velocity
+    x_edges, v_edges, grid = report.steps[0].disagreement.residual_map
+    (mesh,) = ax_b.collections
+    assert mesh.get_array().size == grid.size
+    assert (ax_b.get_xlabel(), ax_b.get_ylabel()) == ("x1", "x2")
+    # (c) one bar per scored candidate at its gain, the threshold line, the added effect highlighted
+    step = report.steps[0]
+    scored = [c for c in step.scores if np.isfinite(c.evidence_gain)]
+    assert len(ax_c.patches) == len(scored)
+    np.testing.assert_allclose([p.get_width() for p in ax_c.patches], [c.evidence_gain for c in scored])
+    ticks = sorted(zip(ax_c.get_yticks(), (t.get_text() for t in ax_c.get_yticklabels())), reverse=True)
+    assert [label for _, label in ticks] == [c.label for c in scored]  # best on top
+    (threshold,) = [line for line in ax_c.lines if line.get_label().startswith("threshold")]
+    assert threshold.get_xdata()[0] == step.threshold
+    colours = {c.label: p.get_facecolor() for c, p in zip(scored, ax_c.patches)}
+    highlighted = [label for label, rgba in colours.items() if rgba == matplotlib.colors.to_rgba(plots._AFTER)]
+    assert highlighted == ["coulomb_friction"]
+    path = tmp_path / "discrepancy.png"
+    fig.savefig(path, dpi=60)
+    assert path.stat().st_size > 10_000
+
+
+def test_discrepancy_figure_equation_error_and_without_records(friction_case):
+    report, held = friction_case
+    equation = dataclasses.replace(report, error_measure="equation")
+    ax_a = plots.discrepancy_figure(equation, held).axes[0]
+    assert "residual" in ax_a.get_title() and "equation error" in ax_a.get_title()
+    assert [line.get_label().split(" ")[0] for line in ax_a.lines[:2]] == ["before", "after"]
+    ax_a = plots.discrepancy_figure(report).axes[0]
+    assert not ax_a.lines and "pass heldout=" in ax_a.texts[0].get_text()
+
+
+def test_discrepancy_figure_errors(friction_case):
+    report, held = friction_case
+    with pytest.raises(DataError, match="report must be a DiscrepancyReport"):
+        plots.discrepancy_figure(report.final, held)
+    with pytest.raises(DataError, match=r"heldout must be a Trajectory \(the held-out record\); received ndarray"):
+        plots.discrepancy_figure(report, held.states)
