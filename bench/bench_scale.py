@@ -30,7 +30,7 @@ from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
 from symsbl.batch import identify_many
 from symsbl.rvm import RVM
 from symsbl.signals import Sine
-from symsbl.simulate import simulate, time_grid
+from symsbl.simulate import simulate
 from symsbl.stream import identify_stream, open_npz, stream_stats
 
 FS = 32768

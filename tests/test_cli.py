@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from symsbl import Trajectory, systems, write_trajectory
+from symsbl import systems, write_trajectory
 from symsbl.cli import main
 from symsbl.signals import Multisine, Sine
 from symsbl.simulate import simulate, time_grid
