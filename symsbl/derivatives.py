@@ -63,8 +63,28 @@ def _check(t: np.ndarray, X: np.ndarray, min_samples: int) -> tuple[np.ndarray, 
     return X, float(t[1] - t[0])
 
 
+class _Pointwise:
+    """Shared behaviour of pointwise strategies: one row per sample, dictionary unchanged."""
+
+    def reduce(self, D: np.ndarray) -> np.ndarray:
+        """Identity: pointwise targets pair with pointwise dictionary rows."""
+        return np.asarray(D, dtype=float)
+
+    def n_rows(self, n_samples: int) -> int:
+        """Number of regression rows produced from ``n_samples`` samples."""
+        return n_samples
+
+    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
+        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
+        return row_start, row_stop
+
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
+        """This strategy has no data-dependent settings: returns itself."""
+        return self
+
+
 @dataclass(frozen=True)
-class PointDifference:
+class PointDifference(_Pointwise):
     """Forward point difference ``(x[k+1] - x[k]) / h``, the paper's choice.
 
     First order as an estimate of x'(t_k) (it is second order at the half-sample point
@@ -82,25 +102,9 @@ class PointDifference:
         d[-1] = d[-2]
         return d
 
-    def reduce(self, D: np.ndarray) -> np.ndarray:
-        """Identity: pointwise targets pair with pointwise dictionary rows."""
-        return np.asarray(D, dtype=float)
-
-    def n_rows(self, n_samples: int) -> int:
-        """Number of regression rows produced from ``n_samples`` samples."""
-        return n_samples
-
-    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
-        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
-        return row_start, row_stop
-
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
-        """This strategy has no data-dependent settings: returns itself."""
-        return self
-
 
 @dataclass(frozen=True)
-class CentralDifference:
+class CentralDifference(_Pointwise):
     """Central difference ``(x[k+1] - x[k-1]) / 2h``, second order.
 
     The end points use second-order one-sided formulas.
@@ -114,25 +118,9 @@ class CentralDifference:
         X, h = _check(t, X, 3)
         return np.gradient(X, h, axis=0, edge_order=2)
 
-    def reduce(self, D: np.ndarray) -> np.ndarray:
-        """Identity: pointwise targets pair with pointwise dictionary rows."""
-        return np.asarray(D, dtype=float)
-
-    def n_rows(self, n_samples: int) -> int:
-        """Number of regression rows produced from ``n_samples`` samples."""
-        return n_samples
-
-    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
-        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
-        return row_start, row_stop
-
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
-        """This strategy has no data-dependent settings: returns itself."""
-        return self
-
 
 @dataclass(frozen=True)
-class SavitzkyGolay:
+class SavitzkyGolay(_Pointwise):
     """Savitzky-Golay derivative: a least-squares polynomial of degree ``polyorder`` over
     ``window`` samples, differentiated at the centre.
 
@@ -170,22 +158,6 @@ class SavitzkyGolay:
             )
         X, h = _check(t, X, self.window)
         return savgol_filter(X, self.window, self.polyorder, deriv=1, delta=h, axis=0, mode="interp")
-
-    def reduce(self, D: np.ndarray) -> np.ndarray:
-        """Identity: pointwise targets pair with pointwise dictionary rows."""
-        return np.asarray(D, dtype=float)
-
-    def n_rows(self, n_samples: int) -> int:
-        """Number of regression rows produced from ``n_samples`` samples."""
-        return n_samples
-
-    def sample_span(self, row_start: int, row_stop: int) -> tuple[int, int]:
-        """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
-        return row_start, row_stop
-
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0):
-        """This strategy has no data-dependent settings: returns itself."""
-        return self
 
 
 @dataclass(frozen=True)
