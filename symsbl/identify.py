@@ -75,7 +75,7 @@ def _as_trajectories(data) -> list[Trajectory]:
     )
 
 
-def _columns(traj: Trajectory, library: Library) -> np.ndarray:
+def _check_names(traj: Trajectory, library: Library) -> None:
     available = list(traj.state_names) + list(traj.input_names)
     missing = [n for n in library.variable_names if n not in available]
     if missing:
@@ -84,6 +84,10 @@ def _columns(traj: Trajectory, library: Library) -> np.ndarray:
             f"{list(traj.state_names)} and inputs {list(traj.input_names)}. Declare the library "
             "with symbols named like the data's columns."
         )
+
+
+def _columns(traj: Trajectory, library: Library) -> np.ndarray:
+    _check_names(traj, library)
     return np.column_stack([traj.column(n) for n in library.variable_names])
 
 
@@ -133,21 +137,21 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
         raise LibraryError(f"library must be a symsbl Library; received {type(library).__name__}.")
     longest = max(trajectories, key=lambda tr: tr.n_samples)
     diff = get_differentiator(derivative).resolve(longest.t, longest.states, n_terms=len(library))
-    evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
-    total = None
-    n_rows = 0
-    for traj in trajectories:
+    for traj in trajectories:  # validate everything before the expensive pass
         _check_variation(traj)
-        _columns(traj, library)  # fail early on missing columns
-        n_rows += diff.n_rows(traj.n_samples)
-        part = GramStats.from_chunks(_row_chunks(traj, library, evaluator, diff, chunk_size))
-        total = part if total is None else total + part
+        _check_names(traj, library)
+    n_rows = sum(diff.n_rows(traj.n_samples) for traj in trajectories)
     if n_rows <= len(library):
         raise DataError(
             f"the data give {n_rows} regression rows for {len(library)} candidate terms; "
             "identification needs more rows than terms. Use longer records, a smaller library "
             f"(lower degree) or a derivative with more rows than {type(diff).__name__}."
         )
+    evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
+    total = None
+    for traj in trajectories:
+        part = GramStats.from_chunks(_row_chunks(traj, library, evaluator, diff, chunk_size))
+        total = part if total is None else total + part
     traj = trajectories[0]
     return RegressionStats(total, library, traj.state_names, traj.input_names, diff)
 
