@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import identify, paper, symbols, systems, validate_model
 from symsbl.signals import Sine
 from symsbl.simulate import simulate, time_grid
@@ -36,21 +37,6 @@ M, C, K, K3, F0, W = 1.0, 20.0, 1e4, 1e9, 100.0, 2 * np.pi * 10.0
 TRUE_X2 = {"x1", "x2", "x1**3", "F"}
 
 
-def timed(fn, repeats=3):
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
-
-
-def table(title, header, rows):
-    print(f"\n{title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "|".join("---" for _ in header) + "|")
-    for r in rows:
-        print("| " + " | ".join(str(c) for c in r) + " |")
 
 
 def noisy(states, seed=0):

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
 from symsbl.batch import identify_many
 from symsbl.rvm import RVM
@@ -81,13 +82,6 @@ def measured(fn):
 def x2_support(model):
     return ", ".join(t.name for t in model.equation("x2").terms)
 
-
-def table(title, header, rows):
-    print(f"\n{title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "|".join("---" for _ in header) + "|")
-    for r in rows:
-        print("| " + " | ".join(str(c) for c in r) + " |")
 
 
 def scaling(path: Path, sizes):
@@ -147,14 +141,6 @@ def rvm_vs_ard(path: Path, sizes):
     table("RVM (symsbl, plain fit without the support search) against sklearn ARDRegression on the same weak-form rows of x2'",
           ["N samples", "rows x terms", "RVM (ms)", "ARD (ms)", "ARD / RVM", "RVM support", "ARD support"], rows)
 
-
-def timed(fn, repeats=3):
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
 
 
 def _load_block(directory: Path, a: int, b: int) -> np.ndarray:
