@@ -16,6 +16,7 @@ from .evaluator import Evaluator
 from .identify import fit_stats, identify, regression_stats
 from .library import Library, custom, elementwise, inputs, paper, polynomial
 from .model import Equation, IdentifiedModel, TermEstimate
+from .progress import progress_enabled, set_progress
 from .rvm import RVM, GramStats
 from .signals import Chirp, FreeDecay, Multisine, Sampled, Sine
 from .distributed import dask_stats, from_delayed, identify_dask
@@ -63,10 +64,12 @@ __all__ = [
     "paper",
     "PointDifference",
     "polynomial",
+    "progress_enabled",
     "read_trajectory",
     "regression_stats",
     "RVM",
     "Sampled",
+    "set_progress",
     "SavitzkyGolay",
     "simulate",
     "SimulationError",

@@ -54,6 +54,19 @@ def identify_many(datasets: Sequence, library: Library, *, n_jobs: int = 1, **kw
     -------
     list of IdentifiedModel
         In the order of ``datasets``; the first error raised by any fit is re-raised.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> other = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(80.0, 12.0))
+    >>> models = symsbl.identify_many([train, other.with_noise(0.004, seed=1)], library)
+    >>> [m.equation("x2").names for m in models]
+    [['x1', 'x2', 'x1**3', 'F'], ['x1', 'x2', 'x1**3', 'F']]
     """
     datasets = list(datasets)
     if not datasets:

@@ -93,6 +93,17 @@ class Effect:
         Name of the shape parameter in reports.
     coefficient : str
         Name of the physical coefficient (force per unit of the term) in reports, e.g. ``"Fc"``.
+
+    Examples
+    --------
+    A user's effect: Stribeck-like friction that fades above 1 cm/s.
+
+    >>> import casadi as ca
+    >>> import symsbl
+    >>> stribeck = symsbl.Effect("stribeck", "friction falling with speed", "friction",
+    ...                          lambda x, v: ca.sign(v) * ca.exp(-(v / 0.01) ** 2), sign=-1, coefficient="Fs")
+    >>> [e.name for e in symsbl.catalogue([stribeck])][-2:]
+    ['clearance', 'stribeck']
     """
 
     name: str
@@ -172,6 +183,12 @@ def catalogue(extra: Sequence[Effect] = (), *, exclude: Sequence[str] = ()) -> t
     ------
     LibraryError
         On an unknown name in ``exclude``, a non-:class:`Effect` in ``extra`` or a repeated name.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> [e.name for e in symsbl.catalogue(exclude=["clearance"])]
+    ['coulomb_friction', 'quadratic_damping', 'velocity_squared', 'cubic_damping', 'cubic_stiffness', 'quadratic_stiffness']
     """
     for name in exclude:
         get_effect(name)

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from .errors import SymsblError
+from .progress import progress_enabled
 
 __all__ = ["main"]
 
@@ -122,8 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Sparse Bayesian identification of nonlinear ODEs from sampled data.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", action="store_true",
+                        help="no progress lines (they are shown only on a terminal, for steps longer than 0.5 s)")
 
-    p = sub.add_parser("identify", help="identify equations of motion from a data file")
+    p = sub.add_parser("identify", parents=[common], help="identify equations of motion from a data file")
     p.add_argument("data", help="CSV with a header row, .npz or .mat")
     p.add_argument("--states", required=True, help="comma-separated state columns, e.g. x1,x2")
     p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
@@ -134,14 +138,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the identified model as JSON to this file")
     p.set_defaults(func=_cmd_identify)
 
-    p = sub.add_parser("simulate", help="re-simulate a saved model on a data file and print errors")
+    p = sub.add_parser("simulate", parents=[common], help="re-simulate a saved model on a data file and print errors")
     p.add_argument("model", help="model JSON written by `symsbl identify --json`")
     p.add_argument("data", help="CSV/.npz/.mat with the model's states and inputs")
     p.add_argument("--time", default="t", help="time column (default: t)")
     p.add_argument("--json", help="write the errors as JSON to this file")
     p.set_defaults(func=_cmd_simulate)
 
-    p = sub.add_parser("discrepancy", help="find the physical effect a model is missing, add it, show the gain")
+    p = sub.add_parser("discrepancy", parents=[common], help="find the physical effect a model is missing, add it, show the gain")
     p.add_argument("data", help="training record: CSV with a header row, .npz or .mat")
     p.add_argument("--states", required=True, help="comma-separated state columns, e.g. x1,x2")
     p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
@@ -154,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "e.g. report.png (needs symsbl[plot])")
     p.set_defaults(func=_cmd_discrepancy)
 
-    p = sub.add_parser("demo", help="the paper's five systems end to end")
+    p = sub.add_parser("demo", parents=[common], help="the paper's five systems end to end")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     p.add_argument("--quick", action="store_true", help="shorter records (for a fast check)")
     p.add_argument("--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR (needs symsbl[plot])")
@@ -167,11 +171,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
-    except SymsblError as exc:
-        print(f"symsbl {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except FileNotFoundError as exc:
+        with progress_enabled(False if args.quiet else None):
+            return args.func(args)
+    except (SymsblError, FileNotFoundError) as exc:
         print(f"symsbl {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

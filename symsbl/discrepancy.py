@@ -56,6 +56,7 @@ from .evaluator import Evaluator
 from .identify import regression_stats
 from .library import Library
 from .model import Equation, IdentifiedModel, TermEstimate
+from .progress import Progress
 from .rvm import RVM
 from .selection import subset_stats
 from .signals import Sampled
@@ -210,14 +211,15 @@ def _effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
 
 
 # ------------------------------------------------------------------------------------- scoring
-def _score(design, structure, traj, velocity, candidates) -> list[tuple]:
-    """Evidence gain of every candidate variant: ``(variant, gain, fit, cols)``."""
+def _score(design, structure, traj, velocity, candidates, bar) -> list[tuple]:
+    """Evidence gain of every candidate variant: ``(variant, gain, fit, cols)``; ``bar`` counts them."""
     k = list(traj.state_names).index(velocity)
     base_cols = structure[velocity]
     base = design.fit(traj, k, base_cols)
     out = []
     present = {v.effect.name for v, cols in candidates if all(c in base_cols for c in cols)}
     for variant, cols in candidates:
+        bar.update()
         extra = [c for c in cols if c not in base_cols]
         if len(extra) < len(cols) or variant.effect.name in present:
             out.append((variant, -math.inf, None, cols))
@@ -247,7 +249,7 @@ def _admissible(effect: Effect, coef: float, input_coef: float | None) -> tuple[
     return False, "wrong sign: it would feed energy in"
 
 
-def _null_gains(design, structure, model, train, velocity, candidates, noise, n_bootstrap, seed) -> list[float]:
+def _null_gains(design, structure, model, train, velocity, candidates, noise, n_bootstrap, seed, bar) -> list[float]:
     """Largest candidate gain on records simulated from ``model`` with the measured noise."""
     system = model.to_system()
     U = train.inputs if train.inputs.shape[1] else None
@@ -265,7 +267,7 @@ def _null_gains(design, structure, model, train, velocity, candidates, noise, n_
         if U is not None:
             inputs = clean.inputs + rng.standard_normal(U.shape) * [noise[n] for n in train.input_names]
         fake = Trajectory(train.t, states, inputs, train.state_names, train.input_names)
-        gains = [g for _, g, _, _ in _best_per_effect(_score(design, structure, fake, velocity, candidates)).values()]
+        gains = [g for _, g, _, _ in _best_per_effect(_score(design, structure, fake, velocity, candidates, bar)).values()]
         design.forget(fake)
         out.append(max([g for g in gains if np.isfinite(g)], default=0.0))
     return out
@@ -355,6 +357,25 @@ def discrepancy(
     ------
     DataError, LibraryError
         Malformed records or base model, naming the argument, what was expected and received.
+
+    Examples
+    --------
+    A linear model misses 1 N of Coulomb friction; trained at 100 N it hides, held out at 10 N it shows:
+
+    >>> import symsbl
+    >>> truth = symsbl.systems.coulomb(kc=1.0)
+    >>> grid = symsbl.time_grid(2.0, 8192)
+    >>> train = symsbl.simulate(truth, grid, inputs=symsbl.Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    >>> held = symsbl.simulate(truth, grid[:8193], inputs=symsbl.Sine(10.0, 10.0)).with_noise(0.004, seed=1)
+    >>> report = symsbl.discrepancy(train, "x1: x2; x2: F, x1, x2", heldout=held, n_bootstrap=0)
+    >>> report.verdict
+    'added coulomb_friction; then nothing missing'
+    >>> (added,) = report.added
+    >>> added.terms, round(added.coef, 1)
+    (('sign(x2)',), -1.0)
+    >>> step = report.steps[0]
+    >>> step.error_heldout > 10 * step.error_after    # held-out error before and after
+    True
     """
     _check_traj(data, "data", None)
     names = (tuple(data.state_names), tuple(data.input_names))
@@ -422,11 +443,11 @@ class _Workflow:
         trial[self.v] = self.structure[self.v] + [self.design.library.index(n) for c in scores for n in c.terms]
         return trial
 
-    def scores(self, model) -> list[EffectScore]:
+    def scores(self, model, bar) -> list[EffectScore]:
         eq = model.equation(self.v)
         input_coef = eq.terms[self.input_terms[0]].coef if len(self.input_terms) == 1 else None
         out = []
-        scored = _score(self.design, self.structure, self.data, self.v, self.candidates)
+        scored = _score(self.design, self.structure, self.data, self.v, self.candidates, bar)
         for variant, gain, fit, cols in _best_per_effect(scored).values():
             e = variant.effect
             if fit is None:
@@ -448,10 +469,14 @@ class _Workflow:
         where = _locate(model, data, self.heldout, design, self.x, self.v, self.error)
         design.weight = where.effective_fraction
         model = design.model(self.structure, data)
-        scores = self.scores(model)
-        null = []
-        if n_bootstrap > 0 and self.error == "simulation":
-            null = _null_gains(design, self.structure, model, data, self.v, self.candidates, self.noise, n_bootstrap, seed)
+        replicates = n_bootstrap if self.error == "simulation" else 0
+        with Progress(f"discrepancy iteration {it}: scoring the catalogue", unit="fits",
+                      total=(1 + replicates) * len(self.candidates)) as bar:
+            scores = self.scores(model, bar)
+            null = []
+            if replicates > 0:
+                null = _null_gains(design, self.structure, model, data, self.v, self.candidates, self.noise,
+                                   n_bootstrap, seed, bar)
         threshold = max([floor_nats] + [bootstrap_factor * g for g in null])
         for pos, c in enumerate(scores[:3]):  # held-out error of the leading candidates
             if c.admissible and c.evidence_gain > 0:

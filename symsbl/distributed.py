@@ -187,6 +187,20 @@ def from_delayed(chunks: Sequence, *, n_columns: int, lengths: Sequence[int] | N
     Returns
     -------
     dask.array.Array, shape (n_samples, n_columns)
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import dask
+    >>> pieces = [dask.delayed(train.slice)(0, 4000), dask.delayed(train.slice)(4000, None)]
+    >>> record = symsbl.from_delayed(pieces, n_columns=4, scheduler="synchronous")
+    >>> record.shape
+    (8193, 4)
     """
     dask = _dask()
     parts = [dask.delayed(_as_chunk_array)(c) for c in chunks]
@@ -246,6 +260,21 @@ def dask_stats(
     RegressionStats
         Equal, up to the grouping of partial sums, to :func:`symsbl.stream.stream_stats` on
         the same records.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import numpy as np
+    >>> import dask.array as da
+    >>> record = da.from_array(np.column_stack([train.t, train.states, train.inputs]), chunks=(4096, 4))
+    >>> problem = symsbl.dask_stats(record, library, states=["x1", "x2"], inputs=["F"], scheduler="synchronous")
+    >>> bool(np.allclose(problem.stats.gram, symsbl.regression_stats(train, library).stats.gram, rtol=1e-12))
+    True
     """
     dask = _dask()
     names = (tuple(states), tuple(inputs))
@@ -308,6 +337,22 @@ def identify_dask(
     Returns
     -------
     IdentifiedModel
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import numpy as np
+    >>> import dask.array as da
+    >>> columns = np.column_stack([train.t, train.states, train.inputs])   # t, x1, x2, F
+    >>> record = da.from_array(columns, chunks=(4096, 4))
+    >>> model = symsbl.identify_dask(record, library, states=["x1", "x2"], inputs=["F"], scheduler="synchronous")
+    >>> model.equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     problem = dask_stats(
         records, library, states=states, inputs=inputs, derivative=derivative, block_samples=block_samples,

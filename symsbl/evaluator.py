@@ -103,6 +103,20 @@ class Evaluator:
     -----
     Compiled Functions are cached per (equal library, chunk_size, jit, parallel), so a
     second Evaluator for the same library does not recompile.
+
+    Examples
+    --------
+    One row per sample, one column per term, in the library's order:
+
+    >>> import numpy as np
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> lib = symsbl.polynomial([x1, x2], 2)
+    >>> lib.names
+    ['1', 'x1', 'x2', 'x1**2', 'x1*x2', 'x2**2']
+    >>> symsbl.Evaluator(lib, jit=False).evaluate(np.array([[1.0, 2.0], [3.0, -1.0]]))
+    array([[ 1.,  1.,  2.,  1.,  2.,  4.],
+           [ 1.,  3., -1.,  9., -3.,  1.]])
     """
 
     def __init__(self, library: Library, *, chunk_size: int = 4096, jit: bool | str = "auto", parallel: str = "serial"):

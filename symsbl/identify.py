@@ -29,6 +29,7 @@ from .errors import DataError, LibraryError
 from .evaluator import Evaluator
 from .library import Library
 from .model import Equation, IdentifiedModel, TermEstimate
+from .progress import Progress
 from .rvm import RVM, GramStats
 from .selection import complexity, fit_rvm, search_support
 
@@ -102,7 +103,7 @@ def _check_variation(traj: Trajectory) -> None:
             )
 
 
-def _row_chunks(traj, library, evaluator, diff, chunk_size) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _row_chunks(traj, library, evaluator, diff, chunk_size, bar) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     Y = diff.targets(traj.t, traj.states)
     Z = _columns(traj, library)
     n_rows = len(Y)
@@ -114,6 +115,7 @@ def _row_chunks(traj, library, evaluator, diff, chunk_size) -> Iterator[tuple[np
         s0, s1 = diff.sample_span(r0, r1)
         D = diff.reduce(evaluator.evaluate(Z[s0:s1]))[: r1 - r0]
         yield D, Y[r0:r1]
+        bar.update(r1 - r0)
 
 
 def regression_stats(data, library: Library, *, derivative="weak", chunk_size: int = 4096, jit="auto") -> RegressionStats:
@@ -131,6 +133,18 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
         Samples per chunk: memory is ``O(chunk_size * n_terms + n_terms^2)`` whatever the length.
     jit : {"auto", True, False}
         Compile the dictionary with a C compiler when available.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> problem = symsbl.regression_stats(train, library)
+    >>> problem.derivative, problem.stats.n_samples, problem.stats.n_terms
+    (WeakForm(window=44, power=4), 186, 11)
     """
     trajectories = _as_trajectories(data)
     if not isinstance(library, Library):
@@ -149,9 +163,10 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
         )
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     total = None
-    for traj in trajectories:
-        part = GramStats.from_chunks(_row_chunks(traj, library, evaluator, diff, chunk_size))
-        total = part if total is None else total + part
+    with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
+        for traj in trajectories:
+            part = GramStats.from_chunks(_row_chunks(traj, library, evaluator, diff, chunk_size, bar))
+            total = part if total is None else total + part
     traj = trajectories[0]
     return RegressionStats(total, library, traj.state_names, traj.input_names, diff)
 
@@ -194,6 +209,21 @@ def identify(
     Returns
     -------
     IdentifiedModel
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> print(model)
+    x1' = 1.0002(5e-4) x2
+    x2' = -9990(23) x1 - 20.07(0.06) x2 - 9.999e8(8e5) x1^3 + 0.9992(7e-4) F
+    >>> model.equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     problem = regression_stats(data, library, derivative=derivative, chunk_size=chunk_size, jit=jit)
     return fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
@@ -211,6 +241,18 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
         From :func:`regression_stats` or accumulated by other means.
     rvm, equivalence_nats
         As in :func:`identify`.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> problem = symsbl.regression_stats(train, library)
+    >>> symsbl.fit_stats(problem).equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     template = RVM() if rvm is None else rvm
     library = problem.library
@@ -220,29 +262,10 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
     states = tuple(variables[n] if n in variables else _symbol(n) for n in problem.state_names)
     inputs = tuple(variables[n] if n in variables else _symbol(n) for n in problem.input_names)
     equations = []
-    for k, lhs in enumerate(problem.state_names):
-        first = fit_rvm(template, stats, k)
-        if len(first.active_) == 0:
-            equations.append(Equation(lhs, (), np.zeros((0, 0)), float(first.noise_var_), float(first.log_evidence_), int(stats.n_samples)))
-            continue
-        active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
-        _, kept, final = search.score(active)
-        terms = []
-        for pos, col in enumerate(kept):
-            idx = int(final.active_[pos])
-            terms.append(
-                TermEstimate(
-                    expr=library.terms[col].expr,
-                    coef=float(final.coef_[idx]),
-                    std=float(math.sqrt(final.sigma_[pos, pos])),
-                    alpha=float(final.alpha_[idx]),
-                    evidence=float(final.evidence_contribution_[pos]),
-                    alternatives=tuple(library.terms[i].name for i in alternatives.get(col, ())),
-                )
-            )
-        equations.append(
-            Equation(lhs, tuple(terms), np.array(final.sigma_), float(final.noise_var_), float(final.log_evidence_), int(stats.n_samples))
-        )
+    with Progress("fit", total=len(problem.state_names), unit="equations") as bar:
+        for k, lhs in enumerate(problem.state_names):
+            equations.append(_fit_equation(library, stats, k, lhs, template, keys, equivalence_nats))
+            bar.update()
     return IdentifiedModel(
         states=states,
         inputs=inputs,
@@ -253,6 +276,30 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
             "n_rows": int(stats.n_samples),
         },
     )
+
+
+def _fit_equation(library, stats, k, lhs, template, keys, equivalence_nats) -> Equation:
+    """The sparse equation of state ``k``: RVM, support search, parsimony."""
+    first = fit_rvm(template, stats, k)
+    if len(first.active_) == 0:
+        return Equation(lhs, (), np.zeros((0, 0)), float(first.noise_var_), float(first.log_evidence_), int(stats.n_samples))
+    active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
+    _, kept, final = search.score(active)
+    terms = []
+    for pos, col in enumerate(kept):
+        idx = int(final.active_[pos])
+        terms.append(
+            TermEstimate(
+                expr=library.terms[col].expr,
+                coef=float(final.coef_[idx]),
+                std=float(math.sqrt(final.sigma_[pos, pos])),
+                alpha=float(final.alpha_[idx]),
+                evidence=float(final.evidence_contribution_[pos]),
+                alternatives=tuple(library.terms[i].name for i in alternatives.get(col, ())),
+            )
+        )
+    return Equation(lhs, tuple(terms), np.array(final.sigma_), float(final.noise_var_), float(final.log_evidence_),
+                    int(stats.n_samples))
 
 
 def _symbol(name: str):

@@ -219,6 +219,21 @@ class Library:
     variables : sequence of ca.SX
         Scalar SX symbols with distinct names: states first, then inputs. This is the
         column order of the data an :class:`~symsbl.evaluator.Evaluator` expects.
+
+    Examples
+    --------
+    Terms that are the same function are kept once (``2*x2`` is ``x2`` up to its coefficient):
+
+    >>> import casadi as ca
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> lib = symsbl.Library([x1, x2, x1 * ca.fabs(x1), 2 * x2], [x1, x2])
+    >>> lib.names
+    ['x1', 'x2', 'x1*Abs(x1)']
+    >>> (lib + symsbl.elementwise([x1], ["sin"])).drop(["x2"]).names
+    ['x1', 'x1*Abs(x1)', 'sin(x1)']
+    >>> lib["x1*Abs(x1)"].sympy
+    x1*Abs(x1)
     """
 
     def __init__(self, terms: Sequence[ca.SX | sp.Expr | Term], variables: Sequence[ca.SX]):
@@ -414,6 +429,18 @@ def polynomial(variables, degree: int, *, include_bias: bool = True, absolute: b
     Returns
     -------
     Library
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> symsbl.polynomial([x1, x2], 2).names
+    ['1', 'x1', 'x2', 'x1**2', 'x1*x2', 'x2**2']
+
+    With the |x| augmentation, ``|x1|**2`` is ``x1**2`` and appears once:
+
+    >>> symsbl.polynomial([x1], 3, absolute=True).names
+    ['1', 'x1', 'Abs(x1)', 'x1**2', 'x1*Abs(x1)', 'x1**3', 'x1**2*Abs(x1)']
     """
     variables = _as_variables(variables)
     return Library(_polynomial_terms(variables, degree, include_bias, absolute), variables)
@@ -427,19 +454,45 @@ def elementwise(variables, functions: Sequence[str] = ("sin", "cos", "tan", "sig
     variables : sequence of ca.SX
     functions : sequence of str
         Names from :data:`ELEMENTWISE`.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> symsbl.elementwise([x1, x2], ["sin", "sign"]).names
+    ['sin(x1)', 'sin(x2)', 'sign(x1)', 'sign(x2)']
     """
     variables = _as_variables(variables)
     return Library(_elementwise_terms(variables, functions), variables)
 
 
 def inputs(variables) -> Library:
-    """The linear terms ``u1, ..., um`` of the given (input) symbols."""
+    """The linear terms ``u1, ..., um`` of the given (input) symbols.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> F, G = symsbl.symbols("F G")
+    >>> symsbl.inputs([F, G]).names
+    ['F', 'G']
+    """
     variables = _as_variables(variables)
     return Library(list(variables), variables)
 
 
 def custom(exprs: Sequence[ca.SX | sp.Expr], variables) -> Library:
-    """A library of arbitrary CasADi or sympy expressions of ``variables``."""
+    """A library of arbitrary CasADi or sympy expressions of ``variables``.
+
+    Examples
+    --------
+    Any scalar CasADi expression of the declared variables is a candidate:
+
+    >>> import casadi as ca
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> symsbl.custom([ca.tanh(x2 / 0.2), ca.exp(-x1**2)], [x1, x2]).names
+    ['tanh(5.0*x2)', 'exp(-x1**2)']
+    """
     return Library(exprs, variables)
 
 
@@ -461,6 +514,14 @@ def paper(states, inputs: Sequence[ca.SX] = (), degree: int = 6) -> Library:
     -------
     Library
         Variables are ``states + inputs``.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> lib = symsbl.paper([x1, x2], [F], degree=3)
+    >>> len(lib), lib.names[:4], lib.variable_names
+    (34, ['F', '1', 'x1', 'x2'], ['x1', 'x2', 'F'])
     """
     states = _as_variables(states, "states")
     ins = _as_variables(inputs, "inputs")

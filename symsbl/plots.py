@@ -212,6 +212,21 @@ def figure2(
     -------
     matplotlib.figure.Figure
         Axes in order (a), (b), (c) and the variance axis of (c).
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> check = symsbl.validate_model(model, train, n_band=5)
+    >>> from symsbl.plots import figure2
+    >>> fig = figure2(model, check)
+    >>> [ax.get_title() != "" for ax in fig.axes][:3]
+    [True, True, True]
     """
     if not isinstance(validation, Validation):
         raise DataError(f"validation must be a Validation from symsbl.validate_model; received {type(validation).__name__}.")
@@ -250,6 +265,19 @@ def coefficient_uncertainty(model: IdentifiedModel):
     -------
     matplotlib.figure.Figure
         One axes per equation, in state order.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import os
+    >>> from symsbl.plots import coefficient_uncertainty
+    >>> fig = coefficient_uncertainty(symsbl.identify(train, library))
+    >>> fig.savefig(os.devnull, format="png")
     """
     if not model.equations:
         raise DataError("the model has no equations to plot.")

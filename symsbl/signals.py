@@ -40,7 +40,15 @@ class Signal(abc.ABC):
 
 @dataclass(frozen=True)
 class Sine(Signal):
-    """``amplitude * sin(2 pi frequency t + phase)``; the paper's forcing is ``Sine(100, 10)`` (N, Hz)."""
+    """``amplitude * sin(2 pi frequency t + phase)``; the paper's forcing is ``Sine(100, 10)`` (N, Hz).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import symsbl
+    >>> symsbl.Sine(100.0, 10.0)(np.array([0.0, 0.025]))
+    array([  0., 100.])
+    """
 
     amplitude: float = 100.0
     frequency: float = 10.0
@@ -72,6 +80,17 @@ class Multisine(Signal):
         Seed of the phases.
     period : float
         Period in seconds; the frequency resolution is ``1 / period``.
+
+    Examples
+    --------
+    The RMS over one period is exactly ``rms``:
+
+    >>> import numpy as np
+    >>> import symsbl
+    >>> u = symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)
+    >>> t = np.arange(4096) / 4096.0
+    >>> round(float(np.sqrt(np.mean(u(t) ** 2))), 6)
+    60.0
     """
 
     rms: float = 1.0
@@ -124,6 +143,17 @@ class Chirp(Signal):
     ``method="exponential"``: ``f(t) = f0 (f1 / f0)**(t / duration)`` (f0, f1 > 0),
     ``phi = 2 pi f0 duration (r**(t / duration) - 1) / ln r`` with ``r = f1 / f0``.
     The same formula holds outside ``[0, duration]`` (the sweep continues).
+
+    Examples
+    --------
+    A linear sweep from 1 Hz to 10 Hz over 2 s makes (1 + 10) / 2 * 2 = 11 cycles:
+
+    >>> import numpy as np
+    >>> import symsbl
+    >>> chirp = symsbl.Chirp(amplitude=1.0, f0=1.0, f1=10.0, duration=2.0)
+    >>> t = np.linspace(0.0005, 1.9995, 400001)         # the sweep without its two end points
+    >>> int(np.sum(np.diff(np.sign(chirp(t))) != 0))    # 2 * 11 - 1 zero crossings inside
+    21
     """
 
     amplitude: float = 1.0
@@ -164,7 +194,15 @@ class Chirp(Signal):
 
 @dataclass(frozen=True)
 class FreeDecay(Signal):
-    """Zero input on every channel: the response from the initial condition alone."""
+    """Zero input on every channel: the response from the initial condition alone.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import symsbl
+    >>> symsbl.FreeDecay()(np.array([0.0, 1.0]))
+    array([0., 0.])
+    """
 
     n_outputs: int = 1
 
@@ -191,6 +229,14 @@ class Sampled(Signal):
     instead receives ``u_k``, ``(u_k + u_{k+1}) / 2`` and ``u_{k+1}`` at its nodes (see
     :func:`symsbl.simulate.simulate`). Outside ``[t[0], t[-1]]`` ``__call__`` holds the end values;
     :func:`~symsbl.simulate.simulate` refuses grids that leave the sampled span.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import symsbl
+    >>> force = symsbl.Sampled([0.0, 1.0, 2.0], [0.0, 10.0, 0.0])
+    >>> force(np.array([0.5, 1.5]))
+    array([5., 5.])
     """
 
     is_analytic = False

@@ -28,6 +28,7 @@ import numpy as np
 
 from symsbl.data import Trajectory, validate
 from symsbl.errors import SimulationError
+from symsbl.progress import Progress
 from symsbl.signals import FreeDecay, Sampled, Signal
 from symsbl.system import OdeSystem
 
@@ -39,7 +40,14 @@ _JIT_DIR: str | None = None
 
 
 def time_grid(duration: float, fs: float, t0: float = 0.0) -> np.ndarray:
-    """Uniform grid ``t0 + arange(round(duration * fs) + 1) / fs`` (both ends included), shape ``(n_samples,)``."""
+    """Uniform grid ``t0 + arange(round(duration * fs) + 1) / fs`` (both ends included), shape ``(n_samples,)``.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> symsbl.time_grid(1.0, 4)
+    array([0.  , 0.25, 0.5 , 0.75, 1.  ])
+    """
     n = int(round(duration * fs))
     if n < 1:
         raise SimulationError(f"duration * fs must be >= 1 sample interval; received {duration} s at {fs} Hz.")
@@ -101,32 +109,48 @@ def _input_samples(signals: list[Signal], t: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- cvodes
 
 
+#: CVODES integrates long grids in segments of this many sample intervals (the state carried
+#: across), so that a long run reports its progress; each segment restarts the solver, which
+#: costs a few small steps (measured on Duffing at 32768 Hz: +1 % run time, changes below rtol).
+CVODES_SEGMENT = 2**16
+
+
 def _cvodes(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, options):
     """Integrate with CVODES; return ``(states (n, nx) with NaN after a failure, failure time or None, reason)``."""
     x = ca.vertcat(*system.states)
-    ts = ca.SX.sym("t")
-    u = ca.vertcat(*[s.expr(ts) for s in signals]) if signals else ca.SX(0, 1)
+    ts, offset = ca.SX.sym("t"), ca.SX.sym("t_offset")
+    u = ca.vertcat(*[s.expr(ts + offset) for s in signals]) if signals else ca.SX(0, 1)
     ode = system.rhs_function()(x, u)
     opts = {"reltol": rtol, "abstol": atol, "disable_internal_warnings": True}
     opts.update(options or {})
-    try:
-        F = ca.integrator("simulate", "cvodes", {"x": x, "t": ts, "ode": ode}, float(t[0]), t, opts)
-    except RuntimeError as err:
-        raise SimulationError(f"could not build the cvodes integrator: {err}") from None
+    dae = {"x": x, "p": offset, "t": ts, "ode": ode}
     out = np.full((t.size, system.n_states), np.nan)
-    x0 = np.ascontiguousarray(x0)
-    buf, trigger = F.buffer()
-    buf.set_arg(0, memoryview(x0))
-    buf.set_res(0, memoryview(out))
-    try:
-        trigger()
-    except RuntimeError as err:
-        reason = str(err).strip().splitlines()[-1].split(": ", 1)[-1]
-        done = np.flatnonzero(np.all(np.isfinite(out), axis=1))
-        t_last = t[done[-1]] if done.size else t[0]
-        t_fail = buf.stats().get("tcur", np.nan)  # where CVODES stopped, if it says
-        t_fail = float(t_fail) if np.isfinite(t_fail) and t_fail > t_last else float(t_last)
-        return out, t_fail, f"cvodes failed: {reason}"
+    out[0] = x0
+    solvers: dict[int, tuple] = {}
+    with Progress(f"simulate {system.name} (cvodes)", total=t.size - 1, unit="samples") as bar:
+        for a in range(0, t.size - 1, CVODES_SEGMENT):
+            b = min(a + CVODES_SEGMENT, t.size - 1)
+            if b - a not in solvers:  # the grid is uniform: one integrator per segment length
+                try:
+                    F = ca.integrator("simulate", "cvodes", dae, 0.0, t[a + 1:b + 1] - t[a], opts)
+                except RuntimeError as err:
+                    raise SimulationError(f"could not build the cvodes integrator: {err}") from None
+                solvers[b - a] = (*F.buffer(), F.index_in("p"))
+            buf, trigger, i_p = solvers[b - a]
+            start, shift = np.array(out[a]), np.array([t[a]])
+            buf.set_arg(0, memoryview(start))
+            buf.set_arg(i_p, memoryview(shift))
+            buf.set_res(0, memoryview(out[a + 1:b + 1]))
+            try:
+                trigger()
+            except RuntimeError as err:
+                reason = str(err).strip().splitlines()[-1].split(": ", 1)[-1]
+                done = np.flatnonzero(np.all(np.isfinite(out), axis=1))
+                t_last = t[done[-1]] if done.size else t[0]
+                t_fail = buf.stats().get("tcur", np.nan)  # where CVODES stopped (segment time), if it says
+                t_fail = float(t_fail) + t[a] if np.isfinite(t_fail) else -np.inf
+                return out, (t_fail if t_fail > t_last else float(t_last)), f"cvodes failed: {reason}"
+            bar.update(b - a)
     return out, None, ""
 
 
@@ -253,18 +277,20 @@ def _rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, optio
     states = np.empty((n_pad + 1, system.n_states))
     states[0] = x0
     buf, trigger = _chunk_function(step, chunk, jit, n_steps * int(substeps)).buffer()
-    for k0 in range(0, n_pad, chunk):
-        buf.set_arg(0, memoryview(states[k0]))
-        for i, a in enumerate(args, start=1):
-            buf.set_arg(i, memoryview(a[k0:k0 + chunk]))
-        block = states[k0 + 1:k0 + chunk + 1]
-        buf.set_res(0, memoryview(block))
-        trigger()
-        bad = _first_nonfinite_row(block)
-        if bad is not None and k0 + 1 + bad < t.size:
-            row = k0 + 1 + bad
-            states[row:] = np.nan
-            return states[:t.size], float(t[row]), "the state became non-finite (NaN/inf)"
+    with Progress(f"simulate {system.name} (rk4)", total=n_steps, unit="samples") as bar:
+        for k0 in range(0, n_pad, chunk):
+            buf.set_arg(0, memoryview(states[k0]))
+            for i, a in enumerate(args, start=1):
+                buf.set_arg(i, memoryview(a[k0:k0 + chunk]))
+            block = states[k0 + 1:k0 + chunk + 1]
+            buf.set_res(0, memoryview(block))
+            trigger()
+            bad = _first_nonfinite_row(block)
+            if bad is not None and k0 + 1 + bad < t.size:
+                row = k0 + 1 + bad
+                states[row:] = np.nan
+                return states[:t.size], float(t[row]), "the state became non-finite (NaN/inf)"
+            bar.update(min(chunk, n_steps - k0))
     return states[:t.size], None, ""
 
 
@@ -354,6 +380,26 @@ def simulate(
     peak of 9.8e-6 with 1 substep, 6.1e-6 with 2, 2.7e-6 with 4, 1.3e-6 with 8 (observed order 0.7-1.2);
     with kc = 30 (a longer stick phase) 5.2e-4 with 1 substep and 1.6e-4 with 2. Raise ``substeps`` when
     this matters; the smooth parts of the trajectory keep RK4's 4th-order accuracy.
+
+    Examples
+    --------
+    Exponential decay ``x' = -2 x`` from ``x(0) = 1`` against its closed form ``exp(-2 t)``:
+
+    >>> import numpy as np
+    >>> import symsbl
+    >>> (x,) = symsbl.symbols("x")
+    >>> decay = symsbl.OdeSystem((x,), (), (-2 * x,), name="decay")
+    >>> traj = symsbl.simulate(decay, symsbl.time_grid(1.0, 100), x0=[1.0])
+    >>> traj.states.shape
+    (101, 1)
+    >>> bool(abs(traj.states[-1, 0] - np.exp(-2.0)) < 1e-8)
+    True
+
+    The paper's Duffing oscillator under its 100 N, 10 Hz sine:
+
+    >>> duffing = symsbl.systems.duffing()
+    >>> symsbl.simulate(duffing, symsbl.time_grid(0.5, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    Trajectory(4097 samples, 0 to 0.5 s at 8192 Hz, states=['x1', 'x2'], inputs=['F'])
     """
     if method != "auto" and method not in METHODS:
         raise SimulationError(f"method must be one of {['auto', *METHODS]}; received {method!r}.")

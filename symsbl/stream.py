@@ -51,6 +51,7 @@ from .evaluator import Evaluator
 from .identify import RegressionStats, _check_variation, _columns, fit_stats
 from .library import Library
 from .model import IdentifiedModel
+from .progress import Progress
 from .rvm import RVM, GramStats
 
 __all__ = ["ChunkedRecord", "chunked", "open_npz", "stream_stats", "identify_stream"]
@@ -106,6 +107,18 @@ def chunked(chunks, *, states: Sequence[str] | None = None, inputs: Sequence[str
     Returns
     -------
     ChunkedRecord
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> record = symsbl.chunked([train.slice(0, 4096), train.slice(4096, None)])
+    >>> symsbl.identify_stream(record, library).equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     if callable(chunks) and not isinstance(chunks, (list, tuple)):
         source = chunks
@@ -205,6 +218,21 @@ def open_npz(
     Returns
     -------
     ChunkedRecord
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import os, tempfile
+    >>> path = os.path.join(tempfile.mkdtemp(), "train.npz")
+    >>> symsbl.write_trajectory(train, path)
+    >>> record = symsbl.open_npz(path, states=["x1", "x2"], inputs=["F"])   # memory-mapped, read in blocks
+    >>> symsbl.identify_stream(record, library).equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     path = Path(path)
     state_names, input_names = tuple(states), tuple(inputs)
@@ -474,6 +502,20 @@ def stream_stats(
     RegressionStats
         Equal, up to rounding, to :func:`symsbl.regression_stats` on the concatenated records
         with the same (resolved) derivative strategy.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> import numpy as np
+    >>> streamed = symsbl.stream_stats(symsbl.chunked([train.slice(0, 3000), train.slice(3000, None)]), library)
+    >>> in_memory = symsbl.regression_stats(train, library)
+    >>> bool(np.allclose(streamed.stats.gram, in_memory.stats.gram, rtol=1e-12))
+    True
     """
     records = _as_records(records)
     if not isinstance(library, Library):
@@ -485,20 +527,25 @@ def stream_stats(
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     pool = ThreadPoolExecutor(n_jobs) if n_jobs > 1 else None
     total, n_rows, names = None, 0, None
+    lengths = [r.n_samples if isinstance(r, Trajectory) else None for r in records]
+    bar = Progress(f"dictionary ({len(library)} terms) and Gram, streamed", unit="samples",
+                   total=None if None in lengths else sum(lengths))
     try:
-        for index, record in enumerate(records):
-            reader = _RecordReader(record, index)
-            part, rows, diff = _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool, n_jobs)
-            if names is None:
-                names = reader.names
-            elif reader.names != names:
-                raise DataError(
-                    f"all records must have the same state and input names; records[0] has states {names[0]}, "
-                    f"inputs {names[1]}; records[{index}] has states {reader.names[0]}, inputs {reader.names[1]}."
-                )
-            n_rows += rows
-            if part is not None:
-                total = part if total is None else total + part
+        with bar:
+            for index, record in enumerate(records):
+                reader = _RecordReader(record, index)
+                part, rows, diff = _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool,
+                                                 n_jobs, bar)
+                if names is None:
+                    names = reader.names
+                elif reader.names != names:
+                    raise DataError(
+                        f"all records must have the same state and input names; records[0] has states {names[0]}, "
+                        f"inputs {names[1]}; records[{index}] has states {reader.names[0]}, inputs {reader.names[1]}."
+                    )
+                n_rows += rows
+                if part is not None:
+                    total = part if total is None else total + part
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -511,7 +558,7 @@ def stream_stats(
     return RegressionStats(total, library, names[0], names[1], diff)
 
 
-def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool, n_jobs):
+def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool, n_jobs, bar):
     """Statistics, row count and (possibly just resolved) strategy of one record."""
     halo = columns = None
     carry, first = None, True
@@ -524,6 +571,7 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
         total = result if total is None else total + result
 
     for t, X, U, last in _blocks(reader, block_samples):
+        bar.update(len(t))
         if columns is None:
             names = reader.names
             probe = Trajectory(np.arange(2.0), X[:2] if len(X) >= 2 else np.vstack([X, X]),
@@ -592,6 +640,18 @@ def identify_stream(
     Returns
     -------
     IdentifiedModel
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify_stream([train.slice(0, 5000), train.slice(5000, None)], library)
+    >>> model.equation("x2").names
+    ['x1', 'x2', 'x1**3', 'F']
     """
     problem = stream_stats(
         records, library, derivative=derivative, chunk_size=chunk_size, block_samples=block_samples,

@@ -105,6 +105,13 @@ def symbols(names: str | Sequence[str]) -> tuple[ca.SX, ...]:
     -------
     tuple of ca.SX
         One scalar symbol per name, in the given order.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> x1.name(), F.is_symbolic()
+    ('x1', True)
     """
     if isinstance(names, str):
         parts = [p for p in re.split(r"[\s,]+", names) if p]
@@ -206,6 +213,16 @@ def casadi_to_sympy(expr, symbols: Mapping[str, sp.Symbol] | None = None):
     ------
     LibraryError
         If the expression uses a CasADi operation without a sympy counterpart.
+
+    Examples
+    --------
+    >>> import casadi as ca
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> symsbl.casadi_to_sympy(x1 * ca.fabs(x2) + ca.sin(x1))
+    x1*Abs(x2) + sin(x1)
+    >>> symsbl.casadi_to_sympy([x1**2, ca.sign(x2)])
+    [x1**2, sign(x2)]
     """
     items, scalar = _flatten(expr)
     symbols = dict(symbols or {})
@@ -297,6 +314,17 @@ def sympy_to_casadi(expr: sp.Expr, symbols: Mapping[str, ca.SX]) -> ca.SX:
     ------
     LibraryError
         If a symbol is not in ``symbols`` or a function has no CasADi counterpart.
+
+    Examples
+    --------
+    >>> import casadi as ca
+    >>> import sympy as sp
+    >>> import symsbl
+    >>> x1, x2 = symsbl.symbols("x1 x2")
+    >>> a, b = sp.symbols("x1 x2", real=True)
+    >>> expr = symsbl.sympy_to_casadi(sp.Abs(a) * b**3, {"x1": x1, "x2": x2})
+    >>> float(ca.Function("f", [x1, x2], [expr])(-2.0, 3.0))
+    54.0
     """
     expr = sp.sympify(expr)
     cache: dict[sp.Basic, ca.SX] = {}

@@ -79,6 +79,21 @@ class OdeSystem:
     SimulationError
         If symbols are not scalar SX symbols, names repeat, ``rhs`` has the wrong length, a value is
         missing, or ``rhs`` depends on a symbol that is not a state, input or parameter.
+
+    Examples
+    --------
+    A mass-spring-damper with named parameters:
+
+    >>> import casadi as ca
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> m, c, k = symsbl.symbols("m c k")
+    >>> osc = symsbl.OdeSystem((x1, x2), (F,), (x2, (F - c * x2 - k * x1) / m), (m, c, k), (1.0, 20.0, 1e4),
+    ...                        name="oscillator")
+    >>> osc.to_sympy()
+    [Eq(Derivative(x1, t), x2), Eq(Derivative(x2, t), F - 10000*x1 - 20*x2)]
+    >>> osc.with_parameters(c=40.0).to_sympy()[1]
+    Eq(Derivative(x2, t), F - 10000*x1 - 40*x2)
     """
 
     states: tuple

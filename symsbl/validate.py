@@ -24,6 +24,7 @@ import numpy as np
 from .data import Trajectory
 from .errors import DataError, SimulationError
 from .model import IdentifiedModel
+from .progress import Progress
 from .signals import Sampled
 from .simulate import simulate
 
@@ -36,6 +37,13 @@ def nrmse(measured: np.ndarray, simulated: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     measured, simulated : ndarray, shape (n_samples,) or (n_samples, n_channels)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import symsbl
+    >>> float(symsbl.nrmse(np.array([1.0, 2.0, 3.0]), np.array([1.0, 2.0, 4.0])))
+    0.7071067811865475
     """
     measured = np.asarray(measured, dtype=float)
     simulated = np.asarray(simulated, dtype=float)
@@ -126,6 +134,24 @@ def validate_model(
     Returns
     -------
     Validation
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> test = symsbl.simulate(duffing, symsbl.time_grid(0.5, 8192),
+    ...                        inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1))
+    >>> check = symsbl.validate_model(model, test, n_band=5)
+    >>> check.status, max(check.nrmse.values()) < 0.01
+    ('ok', True)
+    >>> lower, upper = check.band    # 3-sigma band of the response, from the coefficient posterior
+    >>> lower.shape
+    (4097, 2)
     """
     if not isinstance(data, Trajectory):
         raise DataError(f"data must be a Trajectory; received {type(data).__name__}.")
@@ -171,14 +197,16 @@ def _band(model, system, data, kw, n_band, seed):
     rng = np.random.default_rng(seed)
     draws = rng.multivariate_normal(mean, cov, size=n_band, method="eigh")
     runs = []
-    for theta in draws:
-        sys_k = dataclasses.replace(system, parameter_values=tuple(float(v) for v in theta))
-        try:
-            sim = simulate(sys_k, data.t, **kw)
-        except SimulationError:
-            continue
-        if sim.n_samples == data.n_samples and getattr(sim, "diverged_at", None) is None:
-            runs.append(sim.states)
+    with Progress("predictive band (Monte Carlo)", total=n_band, unit="draws") as bar:
+        for theta in draws:
+            sys_k = dataclasses.replace(system, parameter_values=tuple(float(v) for v in theta))
+            try:
+                sim = simulate(sys_k, data.t, **kw)
+            except SimulationError:
+                sim = None
+            if sim is not None and sim.n_samples == data.n_samples and sim.diverged_at is None:
+                runs.append(sim.states)
+            bar.update()
     if len(runs) < 2:
         return None
     runs = np.array(runs)
@@ -250,6 +278,19 @@ def compare_to_truth(model: IdentifiedModel, system, data: Trajectory | None = N
         The system that generated the data.
     data : Trajectory, optional
         Used to compute each true term's variance share.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> truth = symsbl.compare_to_truth(model, duffing, train)
+    >>> truth.exact_support, truth.max_error() < 0.005
+    (True, True)
     """
     from .library import Library
 
