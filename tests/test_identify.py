@@ -124,3 +124,27 @@ def test_error_fewer_rows_than_terms():
 def test_error_data_type():
     with pytest.raises(DataError, match="data must be a Trajectory or a non-empty list of Trajectories; received ndarray"):
         identify(np.zeros((10, 2)), polynomial(symbols("x1 x2"), 2))
+
+
+def test_emps_slice_identifies_the_published_inverse_model_within_its_posterior():
+    """Real data: 12 s of the EMPS axis, the published structure M v' = tau - Fv v - Fc sign(v) - OF.
+    Each coefficient of v' lies within 3 posterior standard deviations of the value the published
+    parameters give (Janot, Gautier, Brunot 2019), and within 3 % of it."""
+    import casadi as ca
+    from pathlib import Path
+
+    from symsbl import custom
+    from symsbl.discrepancy import position_record
+
+    published = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "OF": -3.1648}
+    M = published["M"]
+    expected = {"tau": 1 / M, "v": -published["Fv"] / M, "sign(v)": -published["Fc"] / M, "1": -published["OF"] / M}
+    d = np.load(Path(__file__).parent / "data" / "emps_slice.npz")
+    record = position_record(d["t"], d["qm"], d["tau"].astype(float), cutoff=100.0)
+    q, v, tau = symbols("q v tau")
+    model = identify(record, custom([tau, v, ca.sign(v), ca.SX(1)], [q, v, tau]))
+    eq = model.equation("v")
+    assert eq.names == list(expected)
+    for term in eq.terms:
+        assert abs(term.coef - expected[term.name]) < 3 * term.std, (term.name, term.coef, term.std)
+        assert term.coef == pytest.approx(expected[term.name], rel=0.03), term.name
