@@ -12,20 +12,10 @@ and Reference Models of EMPS", Workshop on Nonlinear System Identification Bench
 """
 
 import sys
-from pathlib import Path
 
-from scipy.io import loadmat
+from _emps import PUBLISHED, available, load
 
-from symsbl.discrepancy import discrepancy, position_record
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS"
-PUBLISHED = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "OF": -3.1648}
-
-
-def load(name):
-    m = loadmat(DATA / name)
-    tau = float(m["gtau"].ravel()[0]) * m["vir"].ravel()
-    return position_record(m["t"].ravel(), m["qm"].ravel(), tau, cutoff=100.0)
+from symsbl.discrepancy import discrepancy
 
 
 def physical(model):
@@ -35,8 +25,7 @@ def physical(model):
 
 
 def main():
-    if not (DATA / "DATA_EMPS.mat").exists():
-        print(f"skipped: the EMPS data are not at {DATA} (expected ../shared/data/EMPS next to the repository)")
+    if not available():
         return 0
     report = discrepancy(load("DATA_EMPS.mat"), "q: v; v: tau, v, 1", heldout=load("DATA_EMPS_PULSES.mat"),
                          error="equation")

@@ -14,23 +14,12 @@ and Reference Models of EMPS", Workshop on Nonlinear System Identification Bench
 """
 
 import sys
-from pathlib import Path
 
 import casadi as ca
 import numpy as np
-from scipy.io import loadmat
+from _emps import PUBLISHED, available, load
 
 import symsbl
-from symsbl.discrepancy import position_record
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS"
-PUBLISHED = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "OF": -3.1648}
-
-
-def load(name):
-    m = loadmat(DATA / name)
-    tau = float(m["gtau"].ravel()[0]) * m["vir"].ravel()
-    return position_record(m["t"].ravel(), m["qm"].ravel(), tau, cutoff=100.0)
 
 
 def physical(equation):
@@ -61,8 +50,7 @@ def force_error(record, p):
 
 
 def main():
-    if not (DATA / "DATA_EMPS.mat").exists():
-        print(f"skipped: the EMPS data are not at {DATA} (expected ../shared/data/EMPS next to the repository)")
+    if not available():
         return 0
     train, pulses = load("DATA_EMPS.mat"), load("DATA_EMPS_PULSES.mat")
     q, v, tau = symsbl.symbols("q v tau")
