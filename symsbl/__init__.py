@@ -20,7 +20,8 @@ from .progress import progress_enabled, set_progress
 from .rvm import RVM, GramStats
 from .signals import Chirp, FreeDecay, Multisine, Sampled, Sine
 from .distributed import dask_stats, from_delayed, identify_dask
-from .stream import ChunkedRecord, chunked, identify_stream, open_npz, stream_stats
+from .records import ChunkedRecord, chunked, open_npz
+from .stream import identify_stream, stream_stats
 from .simulate import simulate, time_grid
 from .symbolic import casadi_to_sympy, symbols, sympy_to_casadi
 from .system import OdeSystem

@@ -20,7 +20,8 @@ from .errors import DataError
 from .identify import identify
 from .library import Library
 from .model import IdentifiedModel
-from .stream import ChunkedRecord, identify_stream
+from .records import ChunkedRecord
+from .stream import identify_stream
 
 __all__ = ["identify_many"]
 
@@ -39,7 +40,7 @@ def identify_many(datasets: Sequence, library: Library, *, n_jobs: int = 1, **kw
     ----------
     datasets : sequence
         Each entry is what :func:`symsbl.identify` accepts (a Trajectory or a list of
-        Trajectories, identified together) or a :class:`~symsbl.stream.ChunkedRecord` or list
+        Trajectories, identified together) or a :class:`~symsbl.records.ChunkedRecord` or list
         of records (identified with :func:`symsbl.stream.identify_stream`).
     library : Library
         Candidate terms, shared by every fit (compiled once).
