@@ -8,7 +8,7 @@ symbolic ODE that can be printed, saved and re-simulated. See the README for a t
 from . import systems
 from .batch import identify_many
 from .catalogue import Effect, catalogue
-from .data import Trajectory, read_trajectory, write_trajectory
+from .data import Trajectory, noise_levels, read_trajectory, write_trajectory
 from .discrepancy import DiscrepancyReport, discrepancy
 from .derivatives import CentralDifference, PointDifference, SavitzkyGolay, WeakForm
 from .errors import DataError, LibraryError, SimulationError, SymsblError
@@ -59,6 +59,7 @@ __all__ = [
     "Library",
     "LibraryError",
     "Multisine",
+    "noise_levels",
     "nrmse",
     "OdeSystem",
     "open_npz",

@@ -11,6 +11,7 @@ column per signal. Input files are only ever opened for reading.
 from __future__ import annotations
 
 import csv
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +21,7 @@ import numpy as np
 
 from symsbl.errors import DataError
 
-__all__ = ["Trajectory", "validate", "read_trajectory", "write_trajectory"]
+__all__ = ["Trajectory", "validate", "noise_levels", "read_trajectory", "write_trajectory"]
 
 #: Largest relative deviation of a time step from the mean step accepted as "uniform".
 #: Real loggers jitter (the EMPS record deviates by 2.4e-5); a dropped sample deviates by 1.
@@ -273,6 +274,47 @@ class Trajectory:
 
 
 # ---------------------------------------------------------------------------------------------- files
+
+
+def noise_levels(traj: Trajectory) -> dict[str, float]:
+    """White-noise standard deviation of each state and input, estimated from third differences.
+
+    ``std(diff(x, 3)) = sqrt(20) sigma`` for white noise, while a signal sampled well above its
+    bandwidth contributes almost nothing to the third difference; a median absolute deviation
+    makes the estimate robust to the rare jumps of a discontinuous signal. A signal sampled near
+    its bandwidth leaves some of itself in the third difference, so the estimate errs high.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        At least 4 samples.
+
+    Returns
+    -------
+    dict of str to float
+        Per state and input name, the estimated noise standard deviation in the signal's units.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> clean = symsbl.simulate(symsbl.systems.duffing(), symsbl.time_grid(1.0, 8192),
+    ...                         inputs=symsbl.Sine(100.0, 10.0))
+    >>> noisy = clean.with_noise(0.01, seed=0)        # 1 % of each state's standard deviation
+    >>> levels = symsbl.noise_levels(noisy)
+    >>> added = 0.01 * clean.states.std(axis=0)
+    >>> [round(float(levels[name] / sigma), 2) for name, sigma in zip(clean.state_names, added)]
+    [0.98, 0.99]
+    """
+    if not isinstance(traj, Trajectory) or traj.n_samples < 4:
+        raise DataError(
+            "traj: expected a Trajectory of at least 4 samples to estimate its noise; received "
+            + (f"{traj.n_samples} samples." if isinstance(traj, Trajectory) else f"{type(traj).__name__}.")
+        )
+    out = {}
+    for name in list(traj.state_names) + list(traj.input_names):
+        d3 = np.diff(traj.column(name), 3)
+        out[name] = float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
+    return out
 
 
 def _read_csv(path: Path) -> dict[str, np.ndarray]:

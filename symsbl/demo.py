@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from . import systems
 from .identify import identify
 from .library import paper
+from .data import Trajectory
 from .signals import Multisine, Sine
 from .simulate import simulate, time_grid
 from .validate import TruthComparison, Validation, compare_to_truth, validate_model
@@ -44,6 +45,7 @@ class DemoResult:
     truth: TruthComparison
     heldout: Validation
     seconds: float
+    train: Trajectory | None = None
 
 
 def run_case(name: str, *, seed: int = 0, duration: float = 3.0, degree: int = 6, forcing=None) -> DemoResult:
@@ -65,14 +67,15 @@ def run_case(name: str, *, seed: int = 0, duration: float = 3.0, degree: int = 6
     build, kwargs = CASES[name]
     system = build(**kwargs)
     start = time.perf_counter()
-    train = simulate(system, time_grid(duration, FS), inputs=forcing or Sine(100.0, 10.0))
+    clean = simulate(system, time_grid(duration, FS), inputs=forcing or Sine(100.0, 10.0))
     library = paper(system.states, system.inputs, degree=degree)
-    model = identify(train.with_noise(NOISE, seed=seed), library)
+    train = clean.with_noise(NOISE, seed=seed)
+    model = identify(train, library)
     heldout_input = Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=seed + 1)
     heldout = simulate(system, time_grid(1.0, FS), inputs=heldout_input).with_noise(NOISE, seed=seed + 1000)
     check = validate_model(model, heldout)
     seconds = time.perf_counter() - start
-    return DemoResult(name, system, model, compare_to_truth(model, system, train), check, seconds)
+    return DemoResult(name, system, model, compare_to_truth(model, system, clean), check, seconds, train)
 
 
 def _format_truth(system) -> list[str]:
@@ -123,8 +126,9 @@ def run_demo(*, seed: int = 0, quick: bool = False, out=print) -> list[DemoResul
 def write_figures(results: list[DemoResult], directory, *, n_band: int = 30, seed: int = 0) -> list:
     """Write the paper's Figure 2 for each demo result as ``<directory>/<system>.png``.
 
-    The held-out record is re-simulated with a Monte Carlo band of ``n_band`` draws from the
-    coefficient posterior. Needs the ``plot`` extra (matplotlib).
+    The phase portrait is the (noisy) training record, as in the paper; the held-out record is
+    re-simulated with a predictive band from ``n_band`` draws of the coefficient posterior and
+    the record's measurement noise. Needs the ``plot`` extra (matplotlib).
 
     Returns
     -------
@@ -140,7 +144,7 @@ def write_figures(results: list[DemoResult], directory, *, n_band: int = 30, see
     written = []
     for r in results:
         check = validate_model(r.model, r.heldout.measured, n_band=n_band, seed=seed)
-        fig = figure2(r.model, check)
+        fig = figure2(r.model, check, data=r.train)
         slug = "_".join("".join(c if c.isalnum() else " " for c in r.name.lower()).split())
         path = directory / f"{slug}.png"
         fig.savefig(path, dpi=100)

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import casadi as ca
 import numpy as np
 import sympy as sp
 
-from .data import Trajectory
+from .data import Trajectory, noise_levels
 from .errors import DataError, LibraryError
 from .symbolic import sympy_to_casadi
 
@@ -70,20 +69,6 @@ def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str]
     if missing:
         raise LibraryError(f"--base: no terms for the states {missing}; give every state 'state: terms'.")
     return {s: tuple(out[s]) for s in state_names}
-
-
-def noise_levels(traj: Trajectory) -> dict[str, float]:
-    """White-noise standard deviation of each state and input, from third differences.
-
-    ``std(diff(x, 3)) = sqrt(20) sigma`` for white noise, while a signal sampled well above its
-    bandwidth contributes almost nothing to the third difference; a median absolute deviation
-    makes the estimate robust to the rare jumps of a discontinuous signal.
-    """
-    out = {}
-    for name in list(traj.state_names) + list(traj.input_names):
-        d3 = np.diff(traj.column(name), 3)
-        out[name] = float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
-    return out
 
 
 def position_record(t, position, inputs, *, cutoff: float, names=("q", "v"), input_names=("tau",)) -> Trajectory:

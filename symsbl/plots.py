@@ -59,9 +59,13 @@ def _equation_for(model: IdentifiedModel, state: str | None) -> Equation:
     if not model.equations:
         raise DataError("the model has no equations to plot.")
     if state is None:
-        # The equation with most kept terms carries the nonlinearity; ties go to the later state
-        # (x2' rather than the kinematic x1' = x2).
-        return max(reversed(model.equations), key=lambda eq: len(eq.terms))
+        # The equation that carries the nonlinearity: most nonlinear terms (x3' of Bouc-Wen, as
+        # in the paper's Figure 2e), then most terms; ties go to the later state (x2' rather
+        # than the kinematic x1' = x2).
+        def weight(eq):
+            return sum(not (t.sympy.is_Symbol or t.sympy.is_Number) for t in eq.terms), len(eq.terms)
+
+        return max(reversed(model.equations), key=weight)
     try:
         return model.equation(state)
     except KeyError:
@@ -121,11 +125,13 @@ def _response(ax, model: IdentifiedModel, validation: Validation, state: str, wi
     if sim_keep.any():
         ax.plot(simulated.t[sim_keep], simulated.column(state)[sim_keep], color=_MODEL, lw=1.0, ls="--",
                 label="identified model")
-    if validation.band is not None:
+    band, label = validation.predictive_band, r"3$\sigma$ predictive band"
+    if band is None:
+        band, label = validation.band, r"3$\sigma$ band (coefficients)"
+    if band is not None:
         k = model.state_names.index(state)
-        lower, upper = validation.band[0][:, k], validation.band[1][:, k]
-        ax.fill_between(measured.t[keep], lower[keep], upper[keep], color=_BAND, alpha=0.35, lw=0,
-                        label=r"3$\sigma$ predictive band")
+        lower, upper = band[0][:, k], band[1][:, k]
+        ax.fill_between(measured.t[keep], lower[keep], upper[keep], color=_BAND, alpha=0.35, lw=0, label=label)
     title = f"(b) {state}: measured and re-simulated"
     if validation.status != "ok":
         title += f" (diverged at t = {validation.diverged_at:.3g} s)"
@@ -185,8 +191,10 @@ def figure2(
 
     (a) the phase portrait (first state against the second) of the measured data;
     (b) the measured response of ``state`` against the model's re-simulation, with the
-        3-sigma Monte Carlo band of ``validation.band`` when it was computed
-        (``validate_model(..., n_band=N)``), over a window of the record;
+        3-sigma predictive band when it was computed (``validate_model(..., n_band=N)``): the
+        Monte Carlo spread of the coefficient posterior widened by the measurement noise,
+        :attr:`~symsbl.validate.Validation.predictive_band`, where new measurements should fall;
+        over a window of the record;
     (c) the absolute identified coefficients of ``state``'s equation (log scale), one bar per
         kept term, with the prior variance ``1 / alpha`` and posterior variance ``std**2`` on a
         second log axis.

@@ -70,6 +70,39 @@ def test_figure2_state_and_window(duffing_case, tmp_path):
     fig.savefig(tmp_path / "figure2_x1.png", dpi=60)
 
 
+def test_figure2_draws_the_predictive_band_with_the_noise(duffing_case):
+    _, model, validation = duffing_case
+    fig = plots.figure2(model, validation, window=(0.0, 0.5))
+    (band,) = [c for c in fig.axes[1].collections if isinstance(c, PolyCollection)]
+    assert band.get_label() == r"3$\sigma$ predictive band"
+    lower, upper = validation.predictive_band
+    k = model.state_names.index("x2")
+    drawn = band.get_paths()[0].vertices[:, 1]
+    assert drawn.max() == pytest.approx(upper[:, k].max()) and drawn.min() == pytest.approx(lower[:, k].min())
+    coefficients_only = dataclasses.replace(validation, noise_std=None)
+    fig = plots.figure2(model, coefficients_only)
+    (band,) = [c for c in fig.axes[1].collections if isinstance(c, PolyCollection)]
+    assert band.get_label() == r"3$\sigma$ band (coefficients)"
+
+
+def test_figure2_shows_the_equation_with_the_nonlinearity():
+    """Bouc-Wen: x2' has more terms, x3' the nonlinear ones; the paper's Figure 2e shows x3'."""
+    x1, x2, x3, F = symsbl.symbols("x1 x2 x3 F")
+
+    def equation(lhs, exprs):
+        terms = tuple(symsbl.TermEstimate(expr=e, coef=1.0, std=0.1) for e in exprs)
+        return symsbl.Equation(lhs, terms, np.eye(len(terms)) * 0.01, 1e-6, 0.0)
+
+    model = symsbl.IdentifiedModel(
+        states=(x1, x2, x3), inputs=(F,),
+        equations=(equation("x1", [x2]), equation("x2", [F, x1, x2, x3]),
+                   equation("x3", [x2, x2 * x3**2, x2 * x3])),
+    )
+    assert plots._equation_for(model, None).lhs == "x3"
+    linear = dataclasses.replace(model, equations=model.equations[:2] + (equation("x3", [x2]),))
+    assert plots._equation_for(linear, None).lhs == "x2"
+
+
 def test_figure2_without_band_and_diverged(duffing_case):
     _, model, validation = duffing_case
     no_band = dataclasses.replace(validation, band=None)
