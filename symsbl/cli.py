@@ -69,16 +69,26 @@ def _cmd_identify(args) -> int:
 
 def _cmd_simulate(args) -> int:
     from .data import read_trajectory
+    from .errors import DataError
     from .model import IdentifiedModel
     from .validate import validate_model
 
+    if args.band < 0:
+        raise DataError(f"--band: expected a number of Monte Carlo draws >= 0 (0: no band); received {args.band}.")
     model = IdentifiedModel.load(args.model)
     traj = read_trajectory(args.data, states=model.state_names, inputs=model.input_names, time=args.time)
-    result = validate_model(model, traj)
+    result = validate_model(model, traj, n_band=args.band)
     print(result.message)
     if args.json:
         doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}
+        if result.coverage is not None:
+            doc.update(coverage=result.coverage, noise_std=result.noise_std)
         Path(args.json).write_text(json.dumps(doc, indent=2, default=float) + "\n")
+    if args.plot:
+        from .plots import figure2
+
+        figure2(model, result).savefig(args.plot, dpi=120)
+        print(f"figure written to {args.plot}")
     return 0 if result.status == "ok" else 1
 
 
@@ -143,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", help="CSV/.npz/.mat with the model's states and inputs")
     p.add_argument("--time", default="t", help="time column (default: t)")
     p.add_argument("--json", help="write the errors as JSON to this file")
+    p.add_argument("--band", type=int, default=0, metavar="N",
+                   help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
+                        "(default: 0, no band)")
+    p.add_argument("--plot", metavar="FILE", help="write the paper's Figure 2 for this record to FILE, e.g. fig.png "
+                   "(needs symsbl[plot])")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser("discrepancy", parents=[common], help="find the physical effect a model is missing, add it, show the gain")

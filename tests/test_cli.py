@@ -52,6 +52,30 @@ def test_identify_then_simulate(files, capsys):
     assert errors["status"] == "ok" and max(errors["nrmse"].values()) < 0.005
 
 
+def test_simulate_with_a_predictive_band_and_a_figure(files, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    code, _, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
+                        "--library", "poly", "--json", str(tmp_path / "model.json")], capsys)
+    assert code == 0, err
+    system = systems.duffing()
+    held = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=4))
+    write_trajectory(held.with_noise(0.004, seed=9), tmp_path / "held.npz")
+    png, out_json = tmp_path / "figure2.png", tmp_path / "errors.json"
+    code, out, err = run(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--band", "10",
+                          "--json", str(out_json), "--plot", str(png)], capsys)
+    assert code == 0, err
+    assert "% of samples inside the 3-sigma predictive band" in out and f"figure written to {png}" in out
+    doc = json.loads(out_json.read_text())
+    assert set(doc["coverage"]) == {"x1", "x2"} and min(doc["coverage"].values()) > 0.96
+    added = 0.004 * held.states.std(axis=0)
+    assert [doc["noise_std"][n] / a for n, a in zip(("x1", "x2"), added)] == pytest.approx([1, 1], rel=0.05)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    code, _, err = run(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--band", "-1"], capsys)
+    assert code == 2
+    assert "--band: expected a number of Monte Carlo draws >= 0 (0: no band); received -1" in err
+
+
 def test_poly_library_and_derivative_option(files, capsys):
     code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
                           "--library", "poly", "--degree", "3", "--derivative", "central"], capsys)
