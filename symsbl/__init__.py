@@ -11,7 +11,7 @@ from .catalogue import Effect, catalogue
 from .data import Trajectory, noise_levels, read_trajectory, write_trajectory
 from .discrepancy import DiscrepancyReport, discrepancy
 from .derivatives import CentralDifference, PointDifference, SavitzkyGolay, WeakForm
-from .errors import DataError, LibraryError, SimulationError, SymsblError
+from .errors import DataError, LibraryError, MissingExtraError, SimulationError, SymsblError
 from .evaluator import Evaluator
 from .identify import fit_stats, identify, regression_stats
 from .library import Library, custom, elementwise, inputs, paper, polynomial
@@ -58,6 +58,7 @@ __all__ = [
     "inputs",
     "Library",
     "LibraryError",
+    "MissingExtraError",
     "Multisine",
     "noise_levels",
     "nrmse",

@@ -6,6 +6,7 @@ A thin front end: parsing, reading files, printing. The work is done by the libr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import runpy
 import sys
@@ -186,9 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with progress_enabled(False if args.quiet else None):
+        with progress_enabled(False) if args.quiet else contextlib.nullcontext():
             return args.func(args)
-    except (SymsblError, FileNotFoundError) as exc:
+    except (SymsblError, FileNotFoundError) as exc:  # incl. MissingExtraError: --plot without matplotlib
         print(f"symsbl {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from .data import Trajectory, validate
 from .derivatives import get_differentiator
-from .errors import DataError, LibraryError
+from .errors import DataError, LibraryError, MissingExtraError
 from .evaluator import Evaluator
 from .identify import RegressionStats, _check_variation, _columns, fit_stats
 from .library import Library
@@ -48,7 +48,7 @@ def _dask():
         import dask
         import dask.array
     except ImportError as err:
-        raise ImportError(
+        raise MissingExtraError(
             "symsbl.distributed needs Dask, which is not installed; install it with "
             "pip install symsbl[dask]  (or: pip install 'dask[distributed]')."
         ) from err

@@ -1,6 +1,6 @@
 """Exceptions raised by symsbl."""
 
-__all__ = ["SymsblError", "DataError", "LibraryError", "SimulationError"]
+__all__ = ["SymsblError", "DataError", "LibraryError", "SimulationError", "MissingExtraError"]
 
 
 class SymsblError(ValueError):
@@ -17,3 +17,7 @@ class LibraryError(SymsblError):
 
 class SimulationError(SymsblError):
     """A simulation could not be set up."""
+
+
+class MissingExtraError(SymsblError, ImportError):
+    """An optional dependency is not installed; the message names the extra to install."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from .data import Trajectory
-from .errors import DataError
+from .errors import DataError, MissingExtraError
 from .model import Equation, IdentifiedModel, _pretty, format_uncertain
 from .validate import Validation, validate_model
 
@@ -43,7 +43,7 @@ def _figure(**kwargs):
     try:
         from matplotlib.figure import Figure
     except ImportError as exc:
-        raise ImportError(
+        raise MissingExtraError(
             "symsbl's figures need matplotlib, which is not installed; install it with "
             "`pip install symsbl[plot]` (or `pip install matplotlib`)."
         ) from exc
@@ -205,8 +205,10 @@ def figure2(
     validation : Validation
         The model re-simulated on a record, from :func:`symsbl.validate_model`.
     state : str, optional
-        State whose response and equation are shown. Default: the equation with the most kept
-        terms (the nonlinear one, e.g. ``x2`` of an oscillator).
+        State whose response and equation are shown. Default: the equation that carries the
+        nonlinearity, i.e. with the most terms that are neither a bare variable nor a constant,
+        then with the most terms (``x2`` of an oscillator, ``x3`` of Bouc-Wen as in the paper's
+        Figure 2e).
     data : Trajectory, optional
         Record for the phase portrait (e.g. the training data, as in the paper). Default:
         ``validation.measured``.

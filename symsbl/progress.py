@@ -20,10 +20,10 @@ Examples
 >>> stream.getvalue()
 ''
 >>> with progress_enabled(True):               # forced on, shown at once (delay=0)
-...     with Progress("simulate", total=4, unit="samples", stream=stream, delay=0.0) as bar:
+...     with Progress("simulate", total=4, unit="steps", stream=stream, delay=0.0) as bar:
 ...         bar.update(4)
 >>> stream.getvalue().splitlines()[-1].split(" in ")[0]
-'simulate: 4/4 samples'
+'simulate: 4/4 steps'
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ __all__ = ["Progress", "set_progress", "progress_enabled"]
 
 #: Seconds a step runs before its line appears (the default of :class:`Progress`'s ``delay``).
 DELAY = 0.5
+#: Minimum seconds between two redraws of a line (the default of ``interval``).
+INTERVAL = 0.1
 
 #: None: automatic (shown when standard error is a terminal); True/False: forced on/off.
 _SETTING: bool | None = None
@@ -110,18 +112,22 @@ class Progress:
         Where to write; standard error by default (looked up when the step starts).
     delay : float, optional
         Seconds a step must run before its line appears; :data:`DELAY` by default.
-    interval : float
-        Minimum seconds between redraws.
+    interval : float, optional
+        Minimum seconds between redraws; :data:`INTERVAL` by default.
 
     Notes
     -----
     Use it as a context manager; :meth:`update` is cheap (one clock read) when nothing is drawn.
+    The closing line ends in ``(done)`` when the count reached ``total`` (or no total was
+    given) and ``(stopped)`` otherwise: an exception, a simulation that diverged. A stream that
+    fails while writing (a closed or hung-up terminal) ends the display, never the work.
     """
 
     def __init__(self, label: str, total: int | None = None, *, unit: str = "", stream=None,
-                 delay: float | None = None, interval: float = 0.1):
+                 delay: float | None = None, interval: float | None = None):
         self.label, self.total, self.unit = label, total, unit
-        self.delay, self.interval = DELAY if delay is None else delay, interval
+        self.delay = DELAY if delay is None else delay
+        self.interval = INTERVAL if interval is None else interval
         self.count = 0
         self._stream = stream
         self._start = self._last = 0.0
@@ -132,10 +138,10 @@ class Progress:
         stream = sys.stderr if self._stream is None else self._stream
         self._stream = stream
         outer = getattr(_OPEN, "depth", 0)
-        _OPEN.depth = outer + 1
         enabled = _SETTING if _SETTING is not None else _is_terminal(stream)
         self._active = bool(enabled) and outer == 0 and threading.current_thread() is threading.main_thread()
         self._start = self._last = time.perf_counter()
+        _OPEN.depth = outer + 1
         if self._active and self.delay <= 0:
             self._draw(self._start)
         return self
@@ -159,10 +165,18 @@ class Progress:
             return text
         return f"{self.label}: {self.count}{unit}, {now - self._start:.1f} s"
 
+    def _write(self, text: str) -> None:
+        """Write to the stream; a stream that fails (closed, hung-up terminal) ends the display, never the work."""
+        try:
+            self._stream.write(text)
+            self._stream.flush()
+        except (OSError, ValueError, AttributeError):
+            self._active = self._shown = False
+
     def _draw(self, now: float) -> None:
-        self._stream.write("\r" + self._text(now) + "\033[K")
-        self._stream.flush()
-        self._last, self._shown = now, True
+        self._shown = True
+        self._write("\r" + self._text(now) + "\033[K")
+        self._last = now
 
     def __exit__(self, *exc) -> None:
         _OPEN.depth -= 1
@@ -170,6 +184,6 @@ class Progress:
             now = time.perf_counter()
             unit = f" {self.unit}" if self.unit else ""
             done = f"{self.count}/{self.total}" if self.total else f"{self.count}"
-            status = "stopped" if exc[0] is not None else "done"
-            self._stream.write(f"\r{self.label}: {done}{unit} in {now - self._start:.1f} s ({status})\033[K\n")
-            self._stream.flush()
+            finished = exc[0] is None and (not self.total or self.count >= self.total)
+            status = "done" if finished else "stopped"
+            self._write(f"\r{self.label}: {done}{unit} in {now - self._start:.1f} s ({status})\033[K\n")

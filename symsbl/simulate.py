@@ -3,8 +3,10 @@
 Two integrators, one registry (:data:`METHODS`):
 
 * ``"cvodes"``: SUNDIALS CVODES (BDF, error-controlled), through ``ca.integrator(name, "cvodes", dae, t0, t)``.
-  Analytic inputs enter as expressions of the time symbol (``dae["t"]``), sampled inputs as a linear
-  ``ca.interpolant`` of time, so the solver sees the input between samples exactly.
+  Analytic inputs enter as expressions of the time symbol (``dae["t"] + t_offset``), sampled inputs as a
+  linear ``ca.interpolant`` of time, so the solver sees the input between samples exactly. Long grids are
+  integrated in segments of :data:`CVODES_SEGMENT` samples (the state carried across, ``t_offset`` the
+  segment's start), so that a long run can report its progress.
 * ``"rk4"``: classical fixed-step Runge-Kutta 4 (the paper's scheme) with ``substeps`` steps per sample,
   built as one SX step Function, repeated with ``mapaccum`` over chunks of samples (the state carried from
   chunk to chunk), JIT-compiled when a C compiler exists and written straight into numpy via
@@ -126,17 +128,24 @@ def _cvodes(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, op
     dae = {"x": x, "p": offset, "t": ts, "ode": ode}
     out = np.full((t.size, system.n_states), np.nan)
     out[0] = x0
-    solvers: dict[int, tuple] = {}
-    with Progress(f"simulate {system.name} (cvodes)", total=t.size - 1, unit="samples") as bar:
+    # One integrator per distinct relative output grid: a uniform grid needs one (two with a
+    # shorter last segment); a measured grid with jitter gets one per segment.
+    solvers: list[tuple] = []
+    tol = 1e-9 * float(np.min(np.diff(t)))
+    with Progress(f"simulate {system.name} (cvodes)", total=t.size - 1, unit="steps") as bar:
         for a in range(0, t.size - 1, CVODES_SEGMENT):
             b = min(a + CVODES_SEGMENT, t.size - 1)
-            if b - a not in solvers:  # the grid is uniform: one integrator per segment length
+            grid = t[a + 1:b + 1] - t[a]
+            found = next((s for s in solvers if s[0].size == grid.size and np.allclose(s[0], grid, rtol=0, atol=tol)),
+                         None)
+            if found is None:
                 try:
-                    F = ca.integrator("simulate", "cvodes", dae, 0.0, t[a + 1:b + 1] - t[a], opts)
+                    F = ca.integrator("simulate", "cvodes", dae, 0.0, grid, opts)
                 except RuntimeError as err:
                     raise SimulationError(f"could not build the cvodes integrator: {err}") from None
-                solvers[b - a] = (*F.buffer(), F.index_in("p"))
-            buf, trigger, i_p = solvers[b - a]
+                found = (grid, *F.buffer(), F.index_in("p"))
+                solvers.append(found)
+            _, buf, trigger, i_p = found
             start, shift = np.array(out[a]), np.array([t[a]])
             buf.set_arg(0, memoryview(start))
             buf.set_arg(i_p, memoryview(shift))
@@ -277,7 +286,7 @@ def _rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, optio
     states = np.empty((n_pad + 1, system.n_states))
     states[0] = x0
     buf, trigger = _chunk_function(step, chunk, jit, n_steps * int(substeps)).buffer()
-    with Progress(f"simulate {system.name} (rk4)", total=n_steps, unit="samples") as bar:
+    with Progress(f"simulate {system.name} (rk4)", total=n_steps, unit="steps") as bar:
         for k0 in range(0, n_pad, chunk):
             buf.set_arg(0, memoryview(states[k0]))
             for i, a in enumerate(args, start=1):

@@ -247,13 +247,15 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
     lo = hi = None
     pending: deque = deque()
     total, n_rows = None, 0
+    read = 0  # samples read since the last block was reduced, counted when their block is done
 
-    def collect(result):
+    def collect(result, samples):
         nonlocal total
         total = result if total is None else total + result
+        bar.update(samples)
 
     for t, X, U, last in _blocks(reader, block_samples):
-        bar.update(len(t))
+        read += len(t)
         if columns is None:
             names = reader.names
             probe = Trajectory(np.arange(2.0), X[:2] if len(X) >= 2 else np.vstack([X, X]),
@@ -286,14 +288,18 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
         n_rows += r1 - r0
         Z = np.ascontiguousarray(np.column_stack([X, U])[:, columns])
         block = _Block(X, Z, r0, r1)
+        samples, read = read, 0
         if pool is None:
-            collect(_block_stats(block, diff, halo, evaluator, reader.h, chunk_size))
+            collect(_block_stats(block, diff, halo, evaluator, reader.h, chunk_size), samples)
             continue
-        pending.append(pool.submit(_block_stats, block, diff, halo, evaluator, reader.h, chunk_size))
+        pending.append((pool.submit(_block_stats, block, diff, halo, evaluator, reader.h, chunk_size), samples))
         while len(pending) > n_jobs:
-            collect(pending.popleft().result())
+            future, samples = pending.popleft()
+            collect(future.result(), samples)
     while pending:
-        collect(pending.popleft().result())
+        future, samples = pending.popleft()
+        collect(future.result(), samples)
+    bar.update(read)  # samples that completed no row (a last incomplete window)
     if lo is None:
         raise DataError(f"{reader.label}: the record has no samples.")
     # The running extremes carry everything the variation check looks at (range and magnitude).

@@ -85,6 +85,9 @@ class Validation:
         Human-readable summary.
     noise_std : dict[str, float] or None
         Per state, the white measurement noise estimated from ``measured`` (with the band).
+    band_draws : int
+        Monte Carlo draws behind the band; draws whose simulation diverged are left out (and
+        said so in ``message``), which narrows the band.
     """
 
     measured: Trajectory
@@ -96,6 +99,7 @@ class Validation:
     status: str
     message: str
     noise_std: dict | None = None
+    band_draws: int = 0
 
     def __str__(self) -> str:
         return self.message
@@ -105,7 +109,10 @@ class Validation:
         """``(lower, upper)`` for a new measurement: the model band widened by the noise.
 
         Mean -/+ ``3 sqrt(sd_model**2 + noise_std**2)`` per state, each ``(n_samples, n_states)``;
-        None without a band.
+        None without a band. It assumes white measurement noise (a filtered or differentiated
+        state has coloured noise, which the third-difference estimate under-reads) and leaves
+        out the noise of the measured initial state the simulation starts from (negligible
+        under forcing, lasting in a free decay).
         """
         if self.band is None or self.noise_std is None:
             return None
@@ -224,16 +231,19 @@ def validate_model(
     errs = nrmse(X, sim.states)
     err = dict(zip(model.state_names, map(float, errs)))
     fit = {k: 100.0 * (1.0 - v) for k, v in err.items()}
-    band = _band(model, system, data, kw, n_band, seed) if n_band else None
+    band, draws = _band(model, system, data, kw, n_band, seed) if n_band else (None, 0)
     noise = None
     if band is not None:
         levels = noise_levels(data)
         noise = {s: levels[s] for s in model.state_names}
-    result = Validation(data, sim, err, fit, None, band, "ok", "", noise)
+    result = Validation(data, sim, err, fit, None, band, "ok", "", noise, draws)
     coverage = result.coverage or {}
     lines = [f"{k}: NRMSE {100 * v:.3g} %, fit {fit[k]:.2f} %"
              + (f", {100 * coverage[k]:.1f} % of samples inside the 3-sigma predictive band" if k in coverage else "")
              for k, v in err.items()]
+    if n_band and draws < n_band:
+        lines.append(f"the band uses {draws} of {n_band} posterior draws; the others diverged in simulation"
+                     + ("" if band is not None else ", too many to draw a band"))
     return dataclasses.replace(result, message="\n".join(lines))
 
 
@@ -254,10 +264,10 @@ def _band(model, system, data, kw, n_band, seed):
                 runs.append(sim.states)
             bar.update()
     if len(runs) < 2:
-        return None
+        return None, len(runs)
     runs = np.array(runs)
     mu, sd = runs.mean(axis=0), runs.std(axis=0, ddof=1)
-    return mu - 3 * sd, mu + 3 * sd
+    return (mu - 3 * sd, mu + 3 * sd), len(runs)
 
 
 @dataclass(frozen=True)

@@ -161,6 +161,22 @@ def test_missing_matplotlib_says_how_to_install(duffing_case, monkeypatch):
         plots.coefficient_uncertainty(model)
 
 
+def test_cli_plot_without_matplotlib_is_one_line_not_a_traceback(duffing_case, tmp_path, capsys, monkeypatch):
+    from symsbl.cli import main
+
+    _, model, validation = duffing_case
+    model.save(tmp_path / "model.json")
+    symsbl.write_trajectory(validation.measured, tmp_path / "held.npz")
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    code = main(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--plot", str(tmp_path / "f.png")])
+    assert code == 2
+    assert capsys.readouterr().err.strip() == (
+        "symsbl simulate: error: symsbl's figures need matplotlib, which is not installed; install it with "
+        "`pip install symsbl[plot]` (or `pip install matplotlib`)."
+    )
+    assert not (tmp_path / "f.png").exists()
+
+
 @pytest.fixture(scope="module")
 def friction_case():
     """Hidden Coulomb friction under the 100 N, 10 Hz sine; held out at 10 N, as in test_discrepancy."""

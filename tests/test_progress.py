@@ -5,10 +5,11 @@ import re
 import sys
 import threading
 
+import numpy as np
 import pytest
 
 import symsbl
-from symsbl import progress, systems
+from symsbl import progress, symbols, systems
 from symsbl.cli import main
 from symsbl.discrepancy import discrepancy
 from symsbl.progress import Progress, progress_enabled, set_progress
@@ -35,6 +36,7 @@ def terminal(monkeypatch):
         stream = Terminal()
         monkeypatch.setattr("sys.stderr", stream)
         monkeypatch.setattr(progress, "DELAY", 0.0)
+        monkeypatch.setattr(progress, "INTERVAL", 0.0)
         return stream
 
     return attach
@@ -70,7 +72,38 @@ def test_a_failing_step_is_closed_as_stopped():
         with Progress("work", total=2, stream=stream, delay=0.0) as bar:
             bar.update()
             raise RuntimeError("boom")
-    assert stream.getvalue().replace("\033[K", "").endswith("work: 1/2 in 0.0 s (stopped)\n")
+    assert re.search(r"work: 1/2 in \d+\.\d s \(stopped\)\n$", stream.getvalue().replace("\033[K", ""))
+
+
+def test_a_step_left_short_of_its_total_is_closed_as_stopped():
+    stream = Terminal()
+    with Progress("simulate", total=10, stream=stream, delay=0.0) as bar:
+        bar.update(4)  # e.g. the simulation diverged
+    assert finished(stream.getvalue()) == []
+    assert "simulate: 4/10 in" in stream.getvalue() and "(stopped)" in stream.getvalue()
+
+
+class Broken(Terminal):
+    """A terminal that has gone away: every write fails."""
+
+    def write(self, text):
+        raise OSError(5, "Input/output error")
+
+
+def test_a_failing_stream_ends_the_display_not_the_work(monkeypatch):
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    with progress_enabled(True):
+        traj = simulate(systems.coulomb(), time_grid(0.1, 8192), inputs=Sine(100.0, 10.0))
+        assert traj.n_samples == 820
+        with Progress("a", total=1, stream=Broken(), delay=0.0) as bar:
+            bar.update()
+        monkeypatch.setattr("sys.stderr", None)  # no standard error at all
+        with Progress("b", total=1, delay=0.0) as bar:
+            bar.update()
+    ok = Terminal()
+    with Progress("after", total=1, stream=ok, delay=0.0) as bar:  # nesting depth is back to 0
+        bar.update()
+    assert [line.split(" in ")[0] for line in finished(ok.getvalue())] == ["after: 1/1"]
 
 
 def test_not_a_terminal_short_steps_switched_off_and_worker_threads_stay_silent():
@@ -136,8 +169,8 @@ def test_simulation_reports_its_samples_with_both_integrators(terminal):
     simulate(systems.coulomb(), t, inputs=Sine(100.0, 10.0))
     lines = finished(stream.getvalue())
     assert [line.split(" in ")[0] for line in lines] == [
-        "simulate duffing (cvodes): 2048/2048 samples",
-        "simulate coulomb (rk4): 2048/2048 samples",
+        "simulate duffing (cvodes): 2048/2048 steps",
+        "simulate coulomb (rk4): 2048/2048 steps",
     ]
 
 
@@ -151,6 +184,30 @@ def test_a_long_cvodes_run_in_segments_matches_one_call(monkeypatch):
     assert (abs(parts.states - whole.states).max(axis=0) / scale).max() < 1e-7
 
 
+def test_cvodes_segments_follow_a_measured_grid_with_jitter(monkeypatch):
+    """Segments of equal length but different spacing must not share one integrator's grid:
+    x' = -5 x on a grid whose step drifts by -/+ 0.08 %, against exp(-5 t)."""
+    (x,) = symbols("x")
+    decay = symsbl.OdeSystem((x,), (), (-5 * x,), name="decay")
+    h = 1e-3
+    t = np.concatenate([[0.0], np.cumsum(np.r_[np.full(1000, h * (1 + 8e-4)), np.full(1000, h * (1 - 8e-4))])])
+    monkeypatch.setattr(sys.modules["symsbl.simulate"], "CVODES_SEGMENT", 1000)
+    traj = simulate(decay, t, x0=[1.0], method="cvodes")
+    assert np.max(np.abs(traj.states[:, 0] - np.exp(-5 * t))) < 1e-8
+
+
+def test_a_cvodes_failure_in_a_later_segment_reports_its_absolute_time(monkeypatch):
+    """x' = x^2 from x(0) = 1 blows up at t = 1; with segments of 100 samples the failure lies in
+    the tenth segment and must be reported near t = 1, not near the segment's own start."""
+    (x,) = symbols("x")
+    blowup = symsbl.OdeSystem((x,), (), (x**2,), name="blowup")
+    monkeypatch.setattr(sys.modules["symsbl.simulate"], "CVODES_SEGMENT", 100)
+    traj = simulate(blowup, np.linspace(0.0, 1.5, 1501), x0=[1.0], method="cvodes", on_divergence="truncate")
+    assert 0.99 < traj.diverged_at <= 1.0
+    good = traj.t < 0.99
+    assert np.allclose(traj.states[good, 0], 1 / (1 - traj.t[good]), rtol=1e-6)
+
+
 def test_identification_and_the_band_report_their_rows_equations_and_draws(terminal):
     stream = terminal()
     x1, x2, F = symsbl.symbols("x1 x2 F")
@@ -158,17 +215,30 @@ def test_identification_and_the_band_report_their_rows_equations_and_draws(termi
     model = symsbl.identify(train, symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F]))
     symsbl.validate_model(model, train.slice(0, 1000), n_band=3)
     labels = [line.split(" in ")[0] for line in finished(stream.getvalue()) if not line.startswith("simulate")]
-    assert re.fullmatch(r"dictionary \(\d+ terms\) and Gram: \d+/\d+ rows", labels[0])
+    done, total = map(int, re.fullmatch(r"dictionary \(\d+ terms\) and Gram: (\d+)/(\d+) rows", labels[0]).groups())
+    assert done == total == model.metadata["n_rows"]
     assert labels[1:] == ["fit: 2/2 equations", "predictive band (Monte Carlo): 3/3 draws"]
 
 
-def test_streamed_statistics_report_the_samples_read(terminal):
+def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
     stream = terminal()
     x1, x2, F = symsbl.symbols("x1 x2 F")
     train = simulate(systems.duffing(), time_grid(0.5, 8192), inputs=Sine(100.0, 10.0))
-    symsbl.stream_stats(train, symsbl.polynomial([x1, x2], 2) + symsbl.inputs([F]))
+    seen = []  # what the display said when each block started its reduction
+    reduce_block = sys.modules["symsbl.stream"]._block_stats
+
+    def spy(*args):
+        seen.append(stream.getvalue())
+        return reduce_block(*args)
+
+    monkeypatch.setattr(sys.modules["symsbl.stream"], "_block_stats", spy)
+    records = [train.slice(k * 1024, (k + 1) * 1024) for k in range(4)]  # four records, one block each
+    symsbl.stream_stats(records, symsbl.polynomial([x1, x2], 2) + symsbl.inputs([F]))
+    # samples count once their block is reduced: each block starts with only the earlier ones counted
+    shown = [re.findall(r"streamed: (\d+)/4096 samples", text)[-1] for text in seen]
+    assert shown == ["0", "1024", "2048", "3072"]
     (line,) = [line for line in finished(stream.getvalue()) if not line.startswith("simulate")]
-    assert re.fullmatch(r"dictionary \(\d+ terms\) and Gram, streamed: 4097/4097 samples in .*", line)
+    assert re.fullmatch(r"dictionary \(\d+ terms\) and Gram, streamed: 4096/4096 samples in .*", line)
 
 
 def test_the_discrepancy_scan_reports_every_catalogue_fit(terminal):
