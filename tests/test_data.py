@@ -216,3 +216,14 @@ def test_reads_real_emps_record():
     tr = read_trajectory(EMPS, states=["qm"], inputs=["vir"])
     assert tr.n_samples == 24841 and tr.fs == pytest.approx(1000.0, rel=1e-4)
     assert 0.24 < tr.states.max() < 0.25
+
+
+def test_noise_levels_needs_a_trajectory_of_four_samples():
+    from symsbl import noise_levels
+
+    short = Trajectory(np.arange(3.0), np.zeros((3, 1)) + np.arange(3.0)[:, None], state_names=("x",))
+    with pytest.raises(DataError, match="traj: expected a Trajectory of at least 4 samples to estimate its noise; "
+                                        "received 3 samples."):
+        noise_levels(short)
+    with pytest.raises(DataError, match="received ndarray"):
+        noise_levels(np.zeros((10, 2)))
