@@ -128,24 +128,22 @@ def _cvodes(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, op
     dae = {"x": x, "p": offset, "t": ts, "ode": ode}
     out = np.full((t.size, system.n_states), np.nan)
     out[0] = x0
-    # One integrator per distinct relative output grid: a uniform grid needs one (two with a
-    # shorter last segment); a measured grid with jitter gets one per segment.
-    solvers: list[tuple] = []
+    # The integrator of the previous segment is reused when its relative output grid is this
+    # segment's: a uniform grid builds one (two with a shorter last segment), a measured grid
+    # with jitter one per segment.
+    solver = None
     tol = 1e-9 * float(np.min(np.diff(t)))
     with Progress(f"simulate {system.name} (cvodes)", total=t.size - 1, unit="steps") as bar:
         for a in range(0, t.size - 1, CVODES_SEGMENT):
             b = min(a + CVODES_SEGMENT, t.size - 1)
             grid = t[a + 1:b + 1] - t[a]
-            found = next((s for s in solvers if s[0].size == grid.size and np.allclose(s[0], grid, rtol=0, atol=tol)),
-                         None)
-            if found is None:
+            if solver is None or solver[0].size != grid.size or not np.allclose(solver[0], grid, rtol=0, atol=tol):
                 try:
                     F = ca.integrator("simulate", "cvodes", dae, 0.0, grid, opts)
                 except RuntimeError as err:
                     raise SimulationError(f"could not build the cvodes integrator: {err}") from None
-                found = (grid, *F.buffer(), F.index_in("p"))
-                solvers.append(found)
-            _, buf, trigger, i_p = found
+                solver = (grid, *F.buffer(), F.index_in("p"))
+            _, buf, trigger, i_p = solver
             start, shift = np.array(out[a]), np.array([t[a]])
             buf.set_arg(0, memoryview(start))
             buf.set_arg(i_p, memoryview(shift))
