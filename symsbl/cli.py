@@ -74,11 +74,12 @@ def _cmd_simulate(args) -> int:
     from .model import IdentifiedModel
     from .validate import validate_model
 
-    if args.band < 0:
-        raise DataError(f"--band: expected a number of Monte Carlo draws >= 0 (0: no band); received {args.band}.")
     model = IdentifiedModel.load(args.model)
     traj = read_trajectory(args.data, states=model.state_names, inputs=model.input_names, time=args.time)
-    result = validate_model(model, traj, n_band=args.band)
+    try:
+        result = validate_model(model, traj, n_band=args.band)
+    except DataError as err:  # name the option, not the keyword behind it
+        raise DataError(str(err).replace("n_band:", "--band:", 1)) from None
     print(result.message)
     if args.json:
         doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}

@@ -200,6 +200,8 @@ def validate_model(
     """
     if not isinstance(data, Trajectory):
         raise DataError(f"data must be a Trajectory; received {type(data).__name__}.")
+    if isinstance(n_band, bool) or not isinstance(n_band, (int, np.integer)) or n_band < 0:
+        raise DataError(f"n_band: expected a number of Monte Carlo draws >= 0 (0: no band); received {n_band!r}.")
     missing = [n for n in model.state_names if n not in data.state_names]
     if missing:
         raise DataError(

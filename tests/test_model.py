@@ -182,3 +182,11 @@ def test_draws_that_diverge_are_left_out_of_the_band_and_said_so():
     expected = int(np.sum(c < 0.5))  # blow-up after t = 2 s
     assert result.status == "ok" and result.band_draws == expected < 20
     assert f"the band uses {expected} of 20 posterior draws; the others diverged in simulation" in result.message
+
+
+@pytest.mark.parametrize("n_band", [-1, 2.5, True])
+def test_a_bad_number_of_band_draws_is_named(duffing, n_band):
+    system, data, model = duffing
+    with pytest.raises(DataError, match=rf"n_band: expected a number of Monte Carlo draws >= 0 \(0: no band\); "
+                                        rf"received {n_band!r}"):
+        validate_model(model, data.slice(0, 1000), n_band=n_band)
