@@ -29,8 +29,8 @@ from scipy.integrate import solve_ivp
 
 from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import identify, paper, symbols, systems, validate_model
-from symsbl.signals import Sine
-from symsbl.simulate import simulate, time_grid
+from symsbl import Sine
+from symsbl import simulate, time_grid
 
 FS = 32768
 M, C, K, K3, F0, W = 1.0, 20.0, 1e4, 1e9, 100.0, 2 * np.pi * 10.0

@@ -17,9 +17,9 @@ import time
 import numpy as np
 import sympy as sp
 
-from symsbl.evaluator import Evaluator
-from symsbl.library import paper, polynomial
-from symsbl.symbolic import symbols
+from symsbl import Evaluator
+from symsbl import paper, polynomial
+from symsbl import symbols
 
 N = 1_000_000
 REPEATS = 3

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from symsbl.rvm import RVM, GramStats
+from symsbl import RVM, GramStats
 
 TRUE_TERMS = {(0,): 1.0, (1,): -0.5, (0, 2): 2.0, (0, 0, 0): -1.5, (1, 2, 2): 0.8}
 MONOMIALS = [c for deg in range(7) for c in itertools.combinations_with_replacement(range(3), deg)]

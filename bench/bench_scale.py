@@ -28,11 +28,11 @@ import numpy as np
 
 from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
-from symsbl.batch import identify_many
-from symsbl.rvm import RVM
-from symsbl.signals import Sine
-from symsbl.simulate import simulate
-from symsbl.stream import identify_stream, open_npz, stream_stats
+from symsbl import identify_many
+from symsbl import RVM
+from symsbl import Sine
+from symsbl import simulate
+from symsbl import identify_stream, open_npz, stream_stats
 
 FS = 32768
 PIECE = 2**20
@@ -85,7 +85,7 @@ def x2_support(model):
 
 
 def scaling(path: Path, sizes):
-    from symsbl.identify import fit_stats
+    from symsbl import fit_stats
 
     rows = []
     identify_stream(open_npz(path, **NAMES, stop=20000), LIB)  # compile the dictionary once
@@ -151,8 +151,8 @@ def dask_vs_single(directory: Path, path: Path, n: int):
     import dask
     from dask.distributed import Client, LocalCluster
 
-    from symsbl.distributed import from_delayed, identify_dask
-    from symsbl.identify import fit_stats
+    from symsbl import from_delayed, identify_dask
+    from symsbl import fit_stats
 
     t0 = time.perf_counter()
     problem = stream_stats(open_npz(path, **NAMES, stop=n), LIB)

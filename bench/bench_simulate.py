@@ -18,8 +18,8 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from symsbl import systems
-from symsbl.signals import Sine
-from symsbl.simulate import simulate, time_grid
+from symsbl import Sine
+from symsbl import simulate, time_grid
 
 FS = 32768
 DEADLINE = 10.0  # seconds allowed to each scipy run on the Coulomb system

@@ -3,7 +3,7 @@
 Shared by ``emps_identification.py`` and ``emps_discrepancy.py``; not an example of its own.
 
 The axis force is ``tau = gtau * vir``; the velocity ``v`` comes from the encoder position low-pass
-filtered at 100 Hz (:func:`symsbl.discrepancy.position_record`). Reference: A. Janot, M. Gautier,
+filtered at 100 Hz (:func:`symsbl.position_record`). Reference: A. Janot, M. Gautier,
 M. Brunot, "Data Set and Reference Models of EMPS", Workshop on Nonlinear System Identification
 Benchmarks, 2019.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from scipy.io import loadmat
 
-from symsbl.discrepancy import position_record
+from symsbl import position_record
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS"
 #: The published inverse model M q'' = tau - Fv q' - Fc sign(q') - OF.

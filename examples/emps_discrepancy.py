@@ -15,7 +15,7 @@ import sys
 
 from _emps import PUBLISHED, available, load
 
-from symsbl.discrepancy import discrepancy
+from symsbl import discrepancy
 
 
 def physical(model):

@@ -10,7 +10,7 @@ it clears the calibrated threshold and lowers the held-out error.
 """
 
 import symsbl
-from symsbl.discrepancy import discrepancy
+from symsbl import discrepancy
 
 FS = 16384.0
 KC = 1.0

@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 
 import symsbl
-from symsbl.demo import run_demo
+from symsbl import run_demo
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--figures", type=Path, help="directory for one Figure 2 PNG per system")

@@ -3,91 +3,129 @@
 Candidate terms are CasADi expressions; the dictionary is compiled once and evaluated in chunks;
 a relevance vector machine selects the terms and returns their posterior; the result is a
 symbolic ODE that can be printed, saved and re-simulated. See the README for a tour.
+
+This module is the package's one public surface, listed in the order data flows through it.
+Everything lives in private modules (``symsbl._name``) or private subpackages behind it; the
+only public modules are :mod:`symsbl.systems` (ready-made systems) and :mod:`symsbl.plots`
+(figures, optional matplotlib).
 """
 
 from . import systems
-from .batch import identify_many
-from .catalogue import Effect, catalogue
-from .data import Trajectory, noise_levels, read_trajectory, write_trajectory
-from .discrepancy import DiscrepancyReport, discrepancy
-from .derivatives import CentralDifference, PointDifference, SavitzkyGolay, WeakForm
-from .errors import DataError, LibraryError, MissingExtraError, SimulationError, SymsblError
-from .evaluator import Evaluator
-from .identify import fit_stats, identify, regression_stats
-from .library import Library, custom, elementwise, inputs, paper, polynomial
-from .model import Equation, IdentifiedModel, TermEstimate
-from .progress import progress_enabled, set_progress
-from .rvm import RVM, GramStats
-from .signals import Chirp, FreeDecay, Multisine, Sampled, Sine
-from .distributed import dask_stats, from_delayed, identify_dask
-from .records import ChunkedRecord, chunked, open_npz
-from .stream import identify_stream, stream_stats
-from .simulate import simulate, time_grid
-from .symbolic import casadi_to_sympy, symbols, sympy_to_casadi
-from .system import OdeSystem
-from .validate import Validation, compare_to_truth, nrmse, validate_model
 
-__version__ = "0.1.0"
+# -- errors ----------------------------------------------------------------------------------
+from ._errors import (
+    DataError,
+    ExpressionError,
+    LibraryError,
+    MissingExtraError,
+    ParameterError,
+    SimulationError,
+    SymsblError,
+)
+
+# -- symbolic terms and candidate libraries ----------------------------------------------------
+from ._symbolic import casadi_to_sympy, symbols, sympy_to_casadi
+from ._library import Library, Term
+from ._terms import custom, elementwise, inputs, paper, polynomial
+
+# -- compiled evaluation of a library ----------------------------------------------------------
+from ._evaluator import Evaluator
+
+# -- systems, forcing signals and simulation ---------------------------------------------------
+from ._ode import OdeSystem
+from ._signals import Chirp, FreeDecay, Multisine, Sampled, Signal, Sine
+from ._simulate import simulate, time_grid
+
+# -- data: trajectories, files, noise ---------------------------------------------------------
+from ._trajectory import Trajectory, noise_levels
+from ._io import read_trajectory, write_trajectory
+
+# -- derivatives: regression rows from sampled states -------------------------------------------
+from ._differentiator import Differentiator, Stencil
+from ._differences import CentralDifference, PointDifference, SavitzkyGolay
+from ._weakform import WeakForm
+
+# -- sparse Bayesian regression (equation error) -----------------------------------------------
+from ._gram import GramStats
+from ._rvm import RVM
+from ._regression import RegressionStats, regression_stats
+from ._identify import fit_stats, identify
+
+# -- the identified model --------------------------------------------------------------------
+from ._model import Equation, IdentifiedModel, TermEstimate
+
+# -- re-simulation and validation ----------------------------------------------------------
+from ._validate import Validation, nrmse, validate_model
+from ._truth import TruthComparison, compare_to_truth
+
+# -- discrepancy workflow: what is the model missing? ------------------------------------------
+from ._discrepancy import (
+    CATALOGUE,
+    Variant,
+    Decision,
+    DecisionRule,
+    Disagreement,
+    DiscrepancyReport,
+    DiscrepancyStep,
+    Effect,
+    EffectScore,
+    catalogue,
+    discrepancy,
+    parse_base,
+    position_record,
+)
+
+# -- scale-out: long records, batches, Dask ----------------------------------------------------
+from ._scale import (
+    ChunkedRecord,
+    chunked,
+    dask_stats,
+    from_delayed,
+    identify_dask,
+    identify_many,
+    identify_stream,
+    open_npz,
+    stream_stats,
+)
+
+# -- the paper's five systems end to end (``symsbl demo``) --------------------------------------
+from ._demo import DemoResult, run_demo
+
+# -- progress lines --------------------------------------------------------------------------
+from ._progress import progress_enabled, set_progress
+
+__version__ = "0.2.0"
 
 __all__ = [
-    "casadi_to_sympy",
-    "catalogue",
-    "CentralDifference",
-    "Chirp",
-    "chunked",
-    "ChunkedRecord",
-    "compare_to_truth",
-    "custom",
-    "dask_stats",
-    "DataError",
-    "discrepancy",
-    "DiscrepancyReport",
-    "Effect",
-    "elementwise",
-    "Equation",
-    "Evaluator",
-    "fit_stats",
-    "FreeDecay",
-    "from_delayed",
-    "GramStats",
-    "IdentifiedModel",
-    "identify",
-    "identify_dask",
-    "identify_many",
-    "identify_stream",
-    "inputs",
-    "Library",
-    "LibraryError",
+    # errors
+    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
     "MissingExtraError",
-    "Multisine",
-    "noise_levels",
-    "nrmse",
-    "OdeSystem",
-    "open_npz",
-    "paper",
-    "PointDifference",
-    "polynomial",
-    "progress_enabled",
-    "read_trajectory",
-    "regression_stats",
-    "RVM",
-    "Sampled",
-    "set_progress",
-    "SavitzkyGolay",
-    "simulate",
-    "SimulationError",
-    "Sine",
-    "stream_stats",
-    "symbols",
-    "sympy_to_casadi",
-    "SymsblError",
-    "systems",
-    "TermEstimate",
-    "time_grid",
-    "Trajectory",
-    "validate_model",
-    "Validation",
-    "WeakForm",
-    "write_trajectory",
+    # symbolic terms and libraries
+    "symbols", "casadi_to_sympy", "sympy_to_casadi", "Term", "Library", "polynomial", "elementwise", "inputs",
+    "custom", "paper",
+    # evaluation
+    "Evaluator",
+    # systems and simulation
+    "systems", "OdeSystem", "Signal", "Sine", "Multisine", "Chirp", "FreeDecay", "Sampled", "simulate", "time_grid",
+    # data
+    "Trajectory", "noise_levels", "read_trajectory", "write_trajectory",
+    # derivatives
+    "Differentiator", "Stencil", "PointDifference", "CentralDifference", "SavitzkyGolay", "WeakForm",
+    # regression and identification
+    "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify",
+    # the model
+    "TermEstimate", "Equation", "IdentifiedModel",
+    # validation
+    "Validation", "validate_model", "nrmse", "TruthComparison", "compare_to_truth",
+    # discrepancy
+    "Effect", "Variant", "CATALOGUE", "catalogue", "parse_base", "position_record", "Decision", "DecisionRule",
+    "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport", "discrepancy",
+    # scale-out
+    "ChunkedRecord", "chunked", "open_npz", "stream_stats", "identify_stream", "identify_many", "dask_stats",
+    "identify_dask", "from_delayed",
+    # demo
+    "run_demo", "DemoResult",
+    # progress
+    "set_progress", "progress_enabled",
     "__version__",
 ]

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import casadi as ca
 
-from symsbl.errors import SimulationError
-from symsbl.system import OdeSystem
+from ._errors import SimulationError, expected
+from ._ode import OdeSystem
 
 __all__ = ["linear", "quadratic_damping", "duffing", "coulomb", "bouc_wen", "lorenz"]
 
@@ -76,7 +76,7 @@ def bouc_wen(A: float = 6800.0, n: int = 3, a: float = 1.5, b: float = -1.5,
     exponent (a positive integer), not a parameter symbol. The paper's Fig. 2e uses ``n = 2``.
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise SimulationError(f"n must be a positive integer exponent (e.g. 2 or 3); received {n!r}.")
+        raise SimulationError(expected("n", "a positive integer exponent (e.g. 2 or 3)", n))
     x3 = ca.SX.sym("x3")
 
     def x3dot(x2, x3, p):

@@ -7,10 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from symsbl import systems, write_trajectory
-from symsbl.cli import main
-from symsbl.signals import Multisine, Sine
-from symsbl.simulate import simulate, time_grid
+from symsbl import Multisine, Sine, simulate, systems, time_grid, write_trajectory
+from symsbl._cli import main
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +71,7 @@ def test_simulate_with_a_predictive_band_and_a_figure(files, tmp_path, capsys):
 
     code, _, err = run(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--band", "-1"], capsys)
     assert code == 2
-    assert "--band: expected a number of Monte Carlo draws >= 0 (0: no band); received -1" in err
+    assert "--band: expected a number of Monte Carlo draws >= 0 (0: no band), received -1" in err
 
 
 def test_poly_library_and_derivative_option(files, capsys):
@@ -100,12 +98,17 @@ def test_library_file(files, capsys, tmp_path):
     "make, argv, message",
     [
         (None, ["--states", "x1,q"], r"q"),
-        (None, ["--states", "x1,x2", "--library", "LIBFILE"], r"must define `library`, a symsbl Library"),
-        (None, ["--states", "x1,x2", "--library", "spline"], r"--library must be 'paper', 'poly' or an existing Python file"),
+        (None, ["--states", "x1,x2", "--library", "LIBFILE"],
+         r"nolib\.py': expected a file defining `library`, a symsbl Library .*, received no `library`$"),
+        (None, ["--states", "x1,x2", "--library", "spline"],
+         r"--library: expected 'paper', 'poly' or an existing Python file \(\.py\) defining the library, received "
+         r"'spline'$"),
         ("nan", ["--states", "x1,x2", "--inputs", "F"], r"x2.*(NaN|non-finite|not finite)"),
         ("jitter", ["--states", "x1,x2", "--inputs", "F"], r"(uniform|monoton)"),
-        ("flat", ["--states", "x1,x2", "--inputs", "F"], r"state 'x2' has no variation"),
-        ("short", ["--states", "x1,x2", "--inputs", "F"], r"regression rows for \d+ candidate terms"),
+        ("flat", ["--states", "x1,x2", "--inputs", "F"], r"state 'x2': expected a column that varies, received a "
+                                                         r"constant 3; remove it from the states"),
+        ("short", ["--states", "x1,x2", "--inputs", "F"], r"rows: expected more regression rows than candidate terms "
+                                                          r"\(34\), received \d+ rows from 1 record\(s\) with WeakForm"),
     ],
 )
 def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
@@ -138,7 +141,8 @@ def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
 
 def test_missing_file(capsys):
     code, _, err = run(["simulate", "nope.json", "nope.csv"], capsys)
-    assert code == 2 and "does not exist" in err
+    assert code == 2 and err == ("symsbl simulate: error: model file 'nope.json': expected an existing JSON file, "
+                                 "received no such file\n")
 
 
 def test_module_entry_point_help():

@@ -2,6 +2,7 @@
 
 import dataclasses
 import doctest
+import enum
 import importlib
 import inspect
 import io
@@ -11,11 +12,13 @@ import pytest
 
 import symsbl
 
-MODULES = sorted(m.name for m in pkgutil.iter_modules(symsbl.__path__) if m.name != "__main__")
+MODULES = sorted(m.name.removeprefix("symsbl.") for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.")
+                 if not m.name.endswith("__main__"))
 #: Modules whose examples need an optional extra.
-EXTRAS = {"plots": "matplotlib", "distributed": "dask"}
+EXTRAS = {"plots": "matplotlib", "_scale.dask": "dask", "_discrepancy.figures": "matplotlib", "_figures": "matplotlib"}
 #: Result containers and errors: users receive them, they do not call them.
-RESULTS = {"ChunkedRecord", "DiscrepancyReport", "Equation", "TermEstimate", "Validation"}
+RESULTS = {"ChunkedRecord", "DemoResult", "DiscrepancyReport", "Variant", "DiscrepancyStep", "Disagreement", "EffectScore", "Equation",
+           "RegressionStats", "TermEstimate", "TruthComparison", "Validation"}
 
 
 @pytest.mark.parametrize("name", MODULES)
@@ -37,7 +40,7 @@ def test_docstring_examples_run(name):
 def _needs_example(obj) -> bool:
     if inspect.ismodule(obj) or not callable(obj):
         return False
-    if inspect.isclass(obj) and (issubclass(obj, Exception) or obj.__name__ in RESULTS):
+    if inspect.isclass(obj) and (issubclass(obj, (Exception, enum.Enum)) or obj.__name__ in RESULTS):
         return False
     return True
 

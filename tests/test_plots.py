@@ -5,6 +5,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import exactly
 
 matplotlib = pytest.importorskip("matplotlib")
 matplotlib.use("Agg")
@@ -12,8 +13,12 @@ matplotlib.use("Agg")
 from matplotlib.collections import PolyCollection  # noqa: E402
 
 import symsbl  # noqa: E402
-from symsbl import plots  # noqa: E402
-from symsbl.errors import DataError  # noqa: E402
+from symsbl import (
+    DataError,  # noqa: E402
+    plots,  # noqa: E402
+)
+from symsbl._figures import AFTER  # noqa: E402
+from symsbl._format import format_uncertain  # noqa: E402
 
 FS = 4096.0
 
@@ -116,11 +121,13 @@ def test_figure2_without_band_and_diverged(duffing_case):
 
 def test_figure2_errors(duffing_case):
     _, model, validation = duffing_case
-    with pytest.raises(DataError, match=r"state must be one of the model's states \['x1', 'x2'\]; received 'x3'"):
+    with pytest.raises(DataError, match=exactly("state: expected one of the model's states ['x1', 'x2'], received 'x3'")):
         plots.figure2(model, validation, state="x3")
-    with pytest.raises(DataError, match=r"window must be \(t_start, t_stop\)"):
+    with pytest.raises(DataError, match=exactly("window: expected (t_start, t_stop) with t_start < t_stop in seconds, "
+                                                "received (0.3, 0.1)")):
         plots.figure2(model, validation, window=(0.3, 0.1))
-    with pytest.raises(DataError, match="validation must be a Validation"):
+    with pytest.raises(DataError, match=exactly("validation: expected a Validation from symsbl.validate_model, "
+                                                "received Trajectory")):
         plots.figure2(model, validation.measured)
 
 
@@ -150,19 +157,19 @@ def test_coefficient_uncertainty(duffing_case, tmp_path):
         half = np.array([(seg[1, 0] - seg[0, 0]) / 2 for seg in segments])
         np.testing.assert_allclose(half, 3 * eq.stds / np.abs(eq.coefs), rtol=1e-12)
         texts = [a.get_text() for a in ax.texts]
-        assert texts == [symsbl.model.format_uncertain(t.coef, t.std) for t in eq.terms]
+        assert texts == [format_uncertain(t.coef, t.std) for t in eq.terms]
     fig.savefig(tmp_path / "uncertainty.png", dpi=60)
 
 
 def test_missing_matplotlib_says_how_to_install(duffing_case, monkeypatch):
     _, model, _ = duffing_case
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
-    with pytest.raises(ImportError, match=r"pip install symsbl\[plot\]"):
+    with pytest.raises(ImportError, match=exactly("figures: expected matplotlib to be installed, received ImportError; pip install matplotlib (or pip install '.[plot]' from a clone of symsbl, pip install 'symsbl[plot]' from an index)")):
         plots.coefficient_uncertainty(model)
 
 
 def test_cli_plot_without_matplotlib_is_one_line_not_a_traceback(duffing_case, tmp_path, capsys, monkeypatch):
-    from symsbl.cli import main
+    from symsbl._cli import main
 
     _, model, validation = duffing_case
     model.save(tmp_path / "model.json")
@@ -171,8 +178,8 @@ def test_cli_plot_without_matplotlib_is_one_line_not_a_traceback(duffing_case, t
     code = main(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--plot", str(tmp_path / "f.png")])
     assert code == 2
     assert capsys.readouterr().err.strip() == (
-        "symsbl simulate: error: symsbl's figures need matplotlib, which is not installed; install it with "
-        "`pip install symsbl[plot]` (or `pip install matplotlib`)."
+        "symsbl simulate: error: figures: expected matplotlib to be installed, received ImportError; pip install "
+        "matplotlib (or pip install '.[plot]' from a clone of symsbl, pip install 'symsbl[plot]' from an index)"
     )
     assert not (tmp_path / "f.png").exists()
 
@@ -184,7 +191,7 @@ def friction_case():
     train = symsbl.simulate(system, symsbl.time_grid(3.0, 16384.0), inputs=symsbl.Sine(100.0, 10.0), method="rk4")
     held = symsbl.simulate(system, symsbl.time_grid(1.5, 16384.0), inputs=symsbl.Sine(10.0, 10.0), method="rk4")
     train, held = train.with_noise(0.004, seed=5), held.with_noise(0.004, seed=1005)
-    report = symsbl.discrepancy(train, "x1: x2; x2: F, x1, x2", heldout=held, n_bootstrap=0)
+    report = symsbl.discrepancy(train, "x1: x2; x2: F, x1, x2", heldout=held, rule=symsbl.DecisionRule(n_bootstrap=0))
     return report, held
 
 
@@ -215,7 +222,7 @@ def test_discrepancy_figure_panels(friction_case, tmp_path):
     (threshold,) = [line for line in ax_c.lines if line.get_label().startswith("threshold")]
     assert threshold.get_xdata()[0] == step.threshold
     colours = {c.label: p.get_facecolor() for c, p in zip(scored, ax_c.patches)}
-    highlighted = [label for label, rgba in colours.items() if rgba == matplotlib.colors.to_rgba(plots._AFTER)]
+    highlighted = [label for label, rgba in colours.items() if rgba == matplotlib.colors.to_rgba(AFTER)]
     assert highlighted == ["coulomb_friction"]
     path = tmp_path / "discrepancy.png"
     fig.savefig(path, dpi=60)
@@ -234,7 +241,7 @@ def test_discrepancy_figure_equation_error_and_without_records(friction_case):
 
 def test_discrepancy_figure_errors(friction_case):
     report, held = friction_case
-    with pytest.raises(DataError, match="report must be a DiscrepancyReport"):
+    with pytest.raises(DataError, match=exactly('report: expected a DiscrepancyReport from symsbl.discrepancy with at least one iteration, received IdentifiedModel')):
         plots.discrepancy_figure(report.final, held)
-    with pytest.raises(DataError, match=r"heldout must be a Trajectory \(the held-out record\); received ndarray"):
+    with pytest.raises(DataError, match=exactly('heldout: expected a Trajectory (the held-out record), received ndarray')):
         plots.discrepancy_figure(report, held.states)

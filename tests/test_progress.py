@@ -7,14 +7,13 @@ import threading
 
 import numpy as np
 import pytest
+from helpers import exactly
 
 import symsbl
-from symsbl import progress, symbols, systems
-from symsbl.cli import main
-from symsbl.discrepancy import discrepancy
-from symsbl.progress import Progress, progress_enabled, set_progress
-from symsbl.signals import Sine
-from symsbl.simulate import simulate, time_grid
+import symsbl._progress as progress
+from symsbl import Sine, discrepancy, simulate, symbols, systems, time_grid
+from symsbl._cli import main
+from symsbl._progress import Progress, progress_enabled, set_progress
 
 
 class Terminal(io.StringIO):
@@ -157,7 +156,7 @@ def test_nested_steps_show_only_the_outer_line():
 
 
 def test_set_progress_rejects_a_non_boolean():
-    with pytest.raises(TypeError, match="enabled must be True, False or None; received 'yes'"):
+    with pytest.raises(symsbl.ParameterError, match=exactly("enabled: expected True, False or None, received 'yes'")):
         set_progress("yes")
 
 
@@ -178,7 +177,7 @@ def test_a_long_cvodes_run_in_segments_matches_one_call(monkeypatch):
     """Progress comes from segmenting long cvodes runs; the segments must not change the answer."""
     t = time_grid(0.5, 8192)
     whole = simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0))
-    monkeypatch.setattr(sys.modules["symsbl.simulate"], "CVODES_SEGMENT", 1000)  # 5 segments
+    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 1000)  # 5 segments
     parts = simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0))
     scale = abs(whole.states).max(axis=0)
     assert (abs(parts.states - whole.states).max(axis=0) / scale).max() < 1e-7
@@ -191,7 +190,7 @@ def test_cvodes_segments_follow_a_measured_grid_with_jitter(monkeypatch):
     decay = symsbl.OdeSystem((x,), (), (-5 * x,), name="decay")
     h = 1e-3
     t = np.concatenate([[0.0], np.cumsum(np.r_[np.full(1000, h * (1 + 8e-4)), np.full(1000, h * (1 - 8e-4))])])
-    monkeypatch.setattr(sys.modules["symsbl.simulate"], "CVODES_SEGMENT", 1000)
+    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 1000)
     traj = simulate(decay, t, x0=[1.0], method="cvodes")
     assert np.max(np.abs(traj.states[:, 0] - np.exp(-5 * t))) < 1e-8
 
@@ -201,7 +200,7 @@ def test_a_cvodes_failure_in_a_later_segment_reports_its_absolute_time(monkeypat
     the tenth segment and must be reported near t = 1, not near the segment's own start."""
     (x,) = symbols("x")
     blowup = symsbl.OdeSystem((x,), (), (x**2,), name="blowup")
-    monkeypatch.setattr(sys.modules["symsbl.simulate"], "CVODES_SEGMENT", 100)
+    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 100)
     traj = simulate(blowup, np.linspace(0.0, 1.5, 1501), x0=[1.0], method="cvodes", on_divergence="truncate")
     assert 0.99 < traj.diverged_at <= 1.0
     good = traj.t < 0.99
@@ -225,13 +224,13 @@ def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
     x1, x2, F = symsbl.symbols("x1 x2 F")
     train = simulate(systems.duffing(), time_grid(0.5, 8192), inputs=Sine(100.0, 10.0))
     seen = []  # what the display said when each block started its reduction
-    reduce_block = sys.modules["symsbl.stream"]._block_stats
+    reduce_block = sys.modules["symsbl._scale.stream"].block_stats
 
     def spy(*args):
         seen.append(stream.getvalue())
         return reduce_block(*args)
 
-    monkeypatch.setattr(sys.modules["symsbl.stream"], "_block_stats", spy)
+    monkeypatch.setattr(sys.modules["symsbl._scale.stream"], "block_stats", spy)
     records = [train.slice(k * 1024, (k + 1) * 1024) for k in range(4)]  # four records, one block each
     symsbl.stream_stats(records, symsbl.polynomial([x1, x2], 2) + symsbl.inputs([F]))
     # samples count once their block is reduced: each block starts with only the earlier ones counted
@@ -244,7 +243,7 @@ def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
 def test_the_discrepancy_scan_reports_every_catalogue_fit(terminal):
     stream = terminal()
     train = simulate(systems.linear(), time_grid(1.0, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
-    discrepancy(train, "x1: x2; x2: F, x1, x2", n_bootstrap=1, max_iterations=1)
+    discrepancy(train, "x1: x2; x2: F, x1, x2", rule=symsbl.DecisionRule(n_bootstrap=1), max_iterations=1)
     scans = [line for line in finished(stream.getvalue()) if line.startswith("discrepancy iteration 1")]
     assert len(scans) == 1
     done, total = map(int, re.search(r": (\d+)/(\d+) fits", scans[0]).groups())

@@ -28,11 +28,21 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from symsbl import OdeSystem, compare_to_truth, identify, paper, polynomial, symbols, systems
-from symsbl.demo import CASES
-from symsbl.derivatives import WeakForm
-from symsbl.signals import Multisine, Sine
-from symsbl.simulate import simulate, time_grid
+from symsbl import (
+    Multisine,
+    OdeSystem,
+    Sine,
+    WeakForm,
+    compare_to_truth,
+    identify,
+    paper,
+    polynomial,
+    simulate,
+    symbols,
+    systems,
+    time_grid,
+)
+from symsbl._demo import CASES
 
 FS = 32768.0
 

@@ -4,12 +4,12 @@ import itertools
 
 import numpy as np
 import pytest
+from helpers import exactly
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from symsbl._rvm_core import posterior
-from symsbl.errors import DataError
-from symsbl.rvm import RVM, GramStats
+from symsbl import RVM, DataError, GramStats, ParameterError
+from symsbl._sbl import posterior
 
 MONOMIALS = [c for deg in range(7) for c in itertools.combinations_with_replacement(range(3), deg)]
 TRUE = {(0,): 1.0, (1,): -0.5, (0, 2): 2.0, (0, 0, 0): -1.5, (1, 2, 2): 0.8}
@@ -252,14 +252,14 @@ def test_options_free_fixed_noise_floor_and_verbose(capsys):
 @pytest.mark.parametrize(
     "X, y, match",
     [
-        (np.ones(10), np.ones(10), "X must be a 2-D array, got shape"),
-        (np.ones((10, 2)), np.ones((10, 2)), "y must be a 1-D array"),
-        (np.ones((10, 2)), np.ones(9), "same number of rows, got 10 and 9"),
-        (np.where(np.eye(10, 2) > 0, np.nan, 1.0), np.ones(10), r"X must be finite.*index \(0, 0\)"),
-        (np.ones((10, 2)), np.r_[np.ones(9), np.inf], r"y must be finite.*index \(9, 0\)"),
-        (np.ones((1, 2)), np.ones(1), "at least 2 samples"),
-        (np.ones((10, 0)), np.ones(10), "at least one column"),
-        (np.ones((10, 2)), np.zeros(10), "y is identically zero"),
+        (np.ones(10), np.ones(10), exactly('X: expected a 2-D array, received shape (10,); reshape it (e.g. X.reshape(-1, 1) for one column)')),
+        (np.ones((10, 2)), np.ones((10, 2)), exactly('y: expected a 1-D array, received shape (10, 2); reshape it (e.g. y.reshape(-1, 1) for one column)')),
+        (np.ones((10, 2)), np.ones(9), exactly('y: expected as many rows as X (10), received 9 rows')),
+        (np.where(np.eye(10, 2) > 0, np.nan, 1.0), np.ones(10), exactly('X: expected finite values, received a non-finite value at index (0, 0); remove or impute NaN/inf rows first')),
+        (np.ones((10, 2)), np.r_[np.ones(9), np.inf], exactly('y: expected finite values, received a non-finite value at index (9, 0); remove or impute NaN/inf rows first')),
+        (np.ones((1, 2)), np.ones(1), exactly('rows: expected more regression rows than candidate terms (2), received 1 rows from X; use longer records, fewer candidate terms (a lower degree) or a derivative strategy with more rows')),
+        (np.ones((10, 0)), np.ones(10), exactly('stats: expected at least one dictionary column, received none')),
+        (np.ones((10, 2)), np.zeros(10), exactly('y: expected a target that is not identically zero, received all zeros; there is nothing to fit')),
     ],
 )
 def test_fit_rejects_bad_data(X, y, match):
@@ -270,15 +270,15 @@ def test_fit_rejects_bad_data(X, y, match):
 @pytest.mark.parametrize(
     "params, match",
     [
-        ({"prune_nats": "aic"}, r"prune_nats must be a number, None or one of \['bic', 'ebic'\], got 'aic'"),
-        ({"prune_nats": -1.0}, "prune_nats must be a finite number >= 0"),
-        ({"noise_var": 0.0}, "noise_var must be a finite number > 0, got 0.0"),
-        ({"noise_floor": np.nan}, "noise_floor must be a finite number >= 0"),
-        ({"tol": -1}, "tol must be a finite number > 0"),
-        ({"max_iter": 0}, "max_iter must be a positive integer, got 0"),
-        ({"verbose": "yes"}, "verbose must be True or False"),
-        ({"free": [12]}, r"free must hold column indices in \[0, 10\), got \[12\]"),
-        ({"free": [1, 1]}, "free must not repeat a column"),
+        ({"prune_nats": "aic"}, exactly("prune_nats: expected one of 'bic', 'ebic', received 'aic'")),
+        ({"prune_nats": -1.0}, exactly("prune_nats: expected a finite number >= 0.0, None, 'bic', 'ebic', received -1.0")),
+        ({"noise_var": 0.0}, exactly('noise_var: expected a finite number > 0.0, None, received 0.0')),
+        ({"noise_floor": np.nan}, exactly('noise_floor: expected a finite number >= 0.0, received nan')),
+        ({"tol": -1}, exactly('tol: expected a finite number > 0.0, received -1')),
+        ({"max_iter": 0}, exactly('max_iter: expected an integer >= 1, received 0')),
+        ({"verbose": "yes"}, exactly("verbose: expected True or False, received 'yes'")),
+        ({"free": [12]}, exactly('free: expected an integer in [0, 9], received 12')),
+        ({"free": [1, 1]}, exactly('free: expected distinct column indices, received [1, 1]')),
     ],
 )
 def test_fit_rejects_bad_options(params, match):
@@ -290,20 +290,22 @@ def test_fit_rejects_bad_options(params, match):
 def test_other_user_errors():
     X, y = small_problem()
     stats = GramStats.from_arrays(X, y)
-    with pytest.raises(ValueError, match=r"target must be an integer in \[0, 1\), got 1"):
+    with pytest.raises(ValueError, match=exactly('target: expected an integer in [0, 0], received 1')):
         RVM().fit_stats(stats, target=1)
-    with pytest.raises(TypeError, match="stats must be a GramStats, got tuple"):
+    with pytest.raises(ParameterError, match=exactly("stats: expected a GramStats, received tuple")):
         RVM().fit_stats((X.T @ X, X.T @ y))
-    with pytest.raises(ValueError, match="not fitted yet"):
+    with pytest.raises(ParameterError, match=exactly("RVM: expected a fitted estimator, received one not fitted yet; "
+                                                     "call fit(X, y) or fit_stats(stats) first")):
         RVM().predict(X)
-    with pytest.raises(DataError, match="X must have 10 columns"):
+    with pytest.raises(DataError, match=exactly("X: expected 10 columns (as in fit), received 3")):
         RVM().fit(X, y).predict(X[:, :3])
-    with pytest.raises(DataError, match="at least one"):
+    with pytest.raises(DataError, match=exactly("chunks: expected at least one (D_chunk, Y_chunk) pair, received none")):
         GramStats.from_chunks([])
-    with pytest.raises(ValueError, match="factor must be a positive finite number, got -1.0"):
+    with pytest.raises(ParameterError, match=exactly("factor: expected a finite number > 0.0, received -1")):
         stats.scaled(-1)
-    with pytest.raises(DataError, match="same numbers of terms and targets"):
+    with pytest.raises(DataError, match=exactly("other: expected GramStats of (10, 1) (n_terms, n_targets), "
+                                                "received (3, 1)")):
         stats + GramStats.from_arrays(X[:, :3], y)
-    with pytest.raises(ValueError, match="unknown parameter 'alpha'"):
+    with pytest.raises(ParameterError, match=r"^set_params: expected parameter names among \[.*\], received 'alpha'$"):
         RVM().set_params(alpha=1.0)
     assert RVM().set_params(tol=0.1).get_params()["tol"] == 0.1

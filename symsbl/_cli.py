@@ -1,0 +1,315 @@
+"""Command line: ``symsbl identify``, ``symsbl validate`` (alias ``simulate``), ``symsbl discrepancy``,
+``symsbl demo``.
+
+A thin front end: parsing, reading files, printing. The work is done by the library. Every
+failure is one line on standard error, ``symsbl <command>: error: <what>``, with a documented
+exit code (:data:`EXIT_CODES`); outputs are checked before the work starts, never overwrite an
+input, and are written through a temporary file renamed into place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import runpy
+import sys
+from pathlib import Path
+
+from ._errors import LibraryError, MissingExtraError, SymsblError, expected
+from ._progress import progress_enabled
+
+__all__ = ["main", "build_parser", "EXIT_CODES"]
+
+#: Exit codes of the ``symsbl`` command.
+EXIT_CODES = {
+    0: "success",
+    1: "the model diverged in simulation, or no model was found",
+    2: "bad input: arguments, files, data or model (one line on standard error says which)",
+    3: "internal error (a bug; SYMSBL_TRACEBACK=1 prints the traceback)",
+    130: "interrupted (Ctrl-C)",
+}
+
+#: Image formats ``--plot`` accepts (those matplotlib's Agg backend writes).
+PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``symsbl <command>: error: <message>`` and exit code 2."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _names(text: str | None) -> list[str]:
+    return [n.strip() for n in text.split(",") if n.strip()] if text else []
+
+
+def _run_library_file(path: Path, states, inputs):
+    """Run a library file (its Python runs, by design) and return its ``library``."""
+    from ._library import Library
+
+    try:
+        namespace = runpy.run_path(str(path))
+    except SystemExit as exc:
+        raise LibraryError(expected(f"--library {str(path)!r}", "a file that defines `library`",
+                                    f"a file that called sys.exit({exc.code!r})", raw=True)) from None
+    except Exception as exc:  # noqa: BLE001 - the user's file may raise anything
+        line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise LibraryError(expected(f"--library {str(path)!r}", "a Python file that runs",
+                                    f"{type(exc).__name__}{': ' + line if line else ''}", raw=True)) from None
+    found = namespace.get("library")
+    if callable(found) and not isinstance(found, Library):
+        try:
+            found = found(states, inputs)
+        except Exception as exc:  # noqa: BLE001
+            raise LibraryError(expected(f"--library {str(path)!r}", "library(states, inputs) returning a Library",
+                                        f"{type(exc).__name__}: {exc}"[:160], raw=True)) from None
+    if not isinstance(found, Library):
+        got = type(found).__name__ if found is not None else "no `library`"
+        raise LibraryError(expected(f"--library {str(path)!r}", "a file defining `library`, a symsbl Library (or a "
+                                    "function library(states, inputs) returning one) named like the data's columns",
+                                    got, raw=True))
+    return found
+
+
+def _library(spec: str, states, inputs, degree: int):
+    from ._terms import paper, polynomial
+
+    if degree < 1:
+        raise LibraryError(expected("--degree", "an integer >= 1", degree))
+    if spec == "paper":
+        return paper(states, inputs, degree=degree)
+    if spec == "poly":
+        return polynomial(list(states) + list(inputs), degree)
+    path = Path(spec)
+    if path.suffix != ".py" or not path.is_file():
+        raise LibraryError(expected("--library", "'paper', 'poly' or an existing Python file (.py) defining the "
+                                    "library", spec))
+    return _run_library_file(path, states, inputs)
+
+
+def _outputs(args, inputs: list) -> None:
+    """Check every output option before the work starts."""
+    from ._outputs import safe_output
+
+    if getattr(args, "json", None):
+        safe_output(args.json, inputs, what="--json")
+    plot = getattr(args, "plot", None)
+    if plot:
+        if Path(plot).suffix.lower() not in PLOT_FORMATS:
+            raise LibraryError(expected("--plot", f"a file ending in one of {list(PLOT_FORMATS)}", plot))
+        safe_output(plot, inputs, what="--plot")
+    plots = getattr(args, "plots", None)
+    if plots and Path(plots).exists() and not Path(plots).is_dir():
+        raise LibraryError(expected("--plots", "a directory (created if missing)", f"{plots!r}, which is a file",
+                                    raw=True))
+    if plot or plots:
+        from ._figures import require_matplotlib
+
+        require_matplotlib()
+
+
+def _write_json(path, doc: dict) -> None:
+    from ._outputs import write_atomic
+
+    text = json.dumps(doc, indent=2, default=float) + "\n"
+    write_atomic(path, lambda fh: fh.write(text), binary=False)
+
+
+def _save_figure(fig, path) -> None:
+    from ._outputs import write_atomic
+
+    suffix = Path(path).suffix
+    write_atomic(path, lambda fh: fig.savefig(fh, dpi=120, format=suffix[1:]), suffix=suffix)
+
+
+def _read(args, path, states, inputs):
+    from ._io import read_trajectory
+
+    time = None if args.time == "" else args.time
+    return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+
+
+def _cmd_identify(args) -> int:
+    from ._identify import identify
+    from ._symbolic import symbols
+
+    states, inputs = _names(args.states), _names(args.inputs)
+    _outputs(args, [args.data, args.library if str(args.library).endswith(".py") else None])
+    traj = _read(args, args.data, states, inputs)
+    library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
+    model = identify(traj, library, derivative=args.derivative)
+    print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms:")
+    print(model)
+    if args.json:
+        model.save(args.json)
+        print(f"model written to {args.json}")
+    return 0 if any(eq.terms for eq in model.equations) else 1
+
+
+def _cmd_validate(args) -> int:
+    from ._model import IdentifiedModel
+    from ._validate import validate_model
+
+    _outputs(args, [args.model, args.data])
+    model = IdentifiedModel.load(args.model)
+    traj = _read(args, args.data, model.state_names, model.input_names)
+    try:
+        result = validate_model(model, traj, n_band=args.band)
+    except SymsblError as err:  # name the option, not the keyword behind it
+        raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
+    print(result.message)
+    if args.json:
+        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}
+        if result.coverage is not None:
+            doc.update(coverage=result.coverage, noise_std=result.noise_std)
+        _write_json(args.json, doc)
+    if args.plot:
+        from .plots import figure2
+
+        _save_figure(figure2(model, result), args.plot)
+        print(f"figure written to {args.plot}")
+    return 0 if result.status == "ok" else 1
+
+
+def _cmd_discrepancy(args) -> int:
+    from ._discrepancy import discrepancy
+
+    states, inputs = _names(args.states), _names(args.inputs)
+    _outputs(args, [args.data, args.held_out])
+    traj = _read(args, args.data, states, inputs)
+    heldout = _read(args, args.held_out, states, inputs) if args.held_out else None
+    report = discrepancy(traj, args.base, heldout=heldout, error=args.error)
+    print(report)
+    if args.json:
+        _write_json(args.json, report.to_json())
+        print(f"report written to {args.json}")
+    if args.plot:
+        from .plots import discrepancy_figure
+
+        _save_figure(discrepancy_figure(report, heldout), args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from ._demo import run_demo, write_figures
+
+    if args.seed < 0:
+        raise LibraryError(expected("--seed", "an integer >= 0", args.seed))
+    _outputs(args, [])
+    results = run_demo(seed=args.seed, quick=args.quick)
+    if args.plots:
+        for path in write_figures(results, args.plots, seed=args.seed):
+            print(f"figure written to {path}")
+    return 0
+
+
+def _data_options(p, *, states: bool = True) -> None:
+    p.add_argument("data", help="CSV with a header row, .npz or .mat")
+    if states:
+        p.add_argument("--states", required=True, help="comma-separated state columns, e.g. x1,x2")
+        p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
+    p.add_argument("--time", default="t", help="time column (default: t; '' for none, then --fs is needed)")
+    p.add_argument("--fs", type=float, default=None, metavar="HZ",
+                   help="sample rate: builds the time grid when there is no time column, or replaces a "
+                        "time column rounded to a coarse resolution")
+
+
+def _add_identify(sub, common) -> None:
+    from ._derivatives import DIFFERENTIATORS
+
+    p = sub.add_parser("identify", parents=[common], help="identify equations of motion from a data file")
+    _data_options(p)
+    p.add_argument("--library", default="paper",
+                   help="'paper' (Eq. 21), 'poly', or a .py file defining `library` (its Python runs)")
+    p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
+    p.add_argument("--derivative", default="weak", choices=list(DIFFERENTIATORS),
+                   help="how targets are built (default: weak)")
+    p.add_argument("--json", help="write the identified model as JSON to this file")
+    p.set_defaults(func=_cmd_identify)
+
+
+def _add_validate(sub, common) -> None:
+    p = sub.add_parser("validate", aliases=["simulate"], parents=[common],
+                       help="re-simulate a saved model on a data file and print its errors")
+    p.add_argument("model", help="model JSON written by `symsbl identify --json`")
+    _data_options(p, states=False)
+    p.add_argument("--json", help="write the errors as JSON to this file")
+    p.add_argument("--band", type=int, default=0, metavar="N",
+                   help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
+                        "(default: 0, no band)")
+    p.add_argument("--plot", metavar="FILE", help="write the paper's Figure 2 for this record to FILE, e.g. fig.png "
+                   "(needs matplotlib)")
+    p.set_defaults(func=_cmd_validate)
+
+
+def _add_discrepancy(sub, common) -> None:
+    from ._discrepancy.design import ERROR_MEASURES
+
+    p = sub.add_parser("discrepancy", parents=[common],
+                       help="find the physical effect a model is missing, add it, show the gain")
+    _data_options(p)
+    p.add_argument("--base", required=True, help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
+    p.add_argument("--held-out", help="held-out record (default: the last 30 %% of DATA)")
+    p.add_argument("--error", default="simulation", choices=list(ERROR_MEASURES),
+                   help="held-out error (default: simulation)")
+    p.add_argument("--json", help="write the report as JSON to this file")
+    p.add_argument("--plot", metavar="FILE", help="write the before/after, residual-map and evidence figure to FILE, "
+                   "e.g. report.png (needs matplotlib)")
+    p.set_defaults(func=_cmd_discrepancy)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``symsbl`` command."""
+    parser = _Parser(prog="symsbl", description="Sparse Bayesian identification of nonlinear ODEs from sampled data.",
+                     epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()))
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", action="store_true",
+                        help="no progress lines (they are shown only on a terminal, for steps longer than 0.5 s)")
+    _add_identify(sub, common)
+    _add_validate(sub, common)
+    _add_discrepancy(sub, common)
+    p = sub.add_parser("demo", parents=[common], help="the paper's five systems end to end")
+    p.add_argument("--seed", type=int, default=0, help="noise seed >= 0 (default: 0)")
+    p.add_argument("--quick", action="store_true", help="shorter records (for a fast check)")
+    p.add_argument("--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR "
+                   "(needs matplotlib)")
+    p.set_defaults(func=_cmd_demo)
+    return parser
+
+
+def _fail(command: str, message: str, code: int) -> int:
+    with contextlib.suppress(OSError, ValueError):
+        print(f"symsbl {command}: error: {message}", file=sys.stderr)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``symsbl`` console script; returns the exit code (see :data:`EXIT_CODES`)."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        return _fail("", "interrupted", 130)
+    try:
+        with progress_enabled(False) if args.quiet else contextlib.nullcontext():
+            return args.func(args)
+    except (SymsblError, MissingExtraError) as exc:
+        return _fail(args.command, " ".join(str(exc).split()), 2)
+    except KeyboardInterrupt:
+        return _fail(args.command, "interrupted", 130)
+    except MemoryError:
+        return _fail(args.command, "out of memory: use a shorter record, fewer candidate terms or a lower --degree", 2)
+    except Exception as exc:  # noqa: BLE001 - a bug: one line unless asked for the traceback
+        if os.environ.get("SYMSBL_TRACEBACK"):
+            raise
+        return _fail(args.command, f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
+                     "rerun with SYMSBL_TRACEBACK=1 and report it", 3)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

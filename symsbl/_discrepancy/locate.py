@@ -1,0 +1,83 @@
+"""Locating a disagreement: where in the phase plane and in time a model misses the data."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .._evaluator import Evaluator
+from .._library import Library
+from .._validate import validate_model
+from .results import Disagreement
+
+__all__ = ["locate", "effective_fraction"]
+
+
+def locate(model, train, heldout, design, displacement, velocity, measure) -> Disagreement:
+    """Where ``model`` disagrees with the records: residual regions, the jump across v = 0, the phase-plane
+    map and the held-out error over time."""
+    diff = design.derivative
+    eq = model.equation(velocity)
+    lib = Library([t.expr for t in eq.terms], design.variables)
+    Z = np.column_stack([train.column(n) for n in lib.variable_names])
+    D = diff.reduce(Evaluator(lib, jit=False).evaluate(Z))
+    y = diff.targets(train.t, train.column(velocity)[:, None])[:, 0]
+    r = y - D @ np.array([eq.coef(n) for n in lib.names])
+    xv = diff.reduce(np.column_stack([train.column(displacement) if displacement else np.zeros(train.n_samples),
+                                      train.column(velocity)]))
+    x, v = xv[:, 0], xv[:, 1]
+    X, V = max(np.max(np.abs(x)), 1e-300), max(np.max(np.abs(v)), 1e-300)
+    energy = r**2 / max(np.sum(r**2), 1e-300)
+    masks = [("velocity reversals (|v| < 0.15 V)", np.abs(v) < 0.15 * V),
+             ("peak speed (|v| > 0.75 V)", np.abs(v) > 0.75 * V)]
+    if displacement:
+        masks.append(("large displacement (|x| > 0.75 X)", np.abs(x) > 0.75 * X))
+    regions = tuple((name, float(m.mean()), float(energy[m].sum())) for name, m in masks)
+    up, down = r[(v > 0) & (v < 0.15 * V)], r[(v < 0) & (v > -0.15 * V)]
+    jump, jump_z = 0.0, 0.0
+    if len(up) > 1 and len(down) > 1:
+        jump = float(up.mean() - down.mean())
+        jump_z = jump / math.sqrt(up.var() / len(up) + down.var() / len(down) + 1e-300)
+    edges_x, edges_v = np.linspace(-X, X, 9), np.linspace(-V, V, 9)
+    total, _, _ = np.histogram2d(x, v, [edges_x, edges_v], weights=r)
+    count, _, _ = np.histogram2d(x, v, [edges_x, edges_v])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_map = np.where(count > 0, total / count, np.nan)
+    # time profile of the held-out error
+    if measure == "simulation":
+        sim = validate_model(model, heldout, method="rk4").simulated
+        states = [n for n in model.state_names]
+        meas = np.column_stack([heldout.column(n) for n in states])[: sim.n_samples]
+        segments = np.array_split(np.arange(sim.n_samples), 10)
+        scale = np.std(meas, axis=0)
+        err = [float(np.mean(np.sqrt(np.mean((meas[s] - sim.states[s]) ** 2, axis=0)) / scale)) for s in segments]
+        mids = [float(heldout.t[s].mean()) for s in segments]
+    else:
+        mids, err = [], []
+    residual_nrmse = float(math.sqrt(np.mean(r**2)) / max(np.std(y), 1e-300))
+    worst = max(regions, key=lambda reg: reg[2] / max(reg[1], 1e-12))
+    words = [f"equation residual {100 * residual_nrmse:.3g} % of the target's spread"]
+    if worst[2] > 1.5 * worst[1]:
+        words.append(f"concentrated at {worst[0]}: {100 * worst[2]:.0f} % of its energy in {100 * worst[1]:.0f} % of the rows")
+    else:
+        words.append("spread evenly over the phase plane")
+    if abs(jump_z) > 5:
+        words.append(f"it jumps by {jump:.3g} (z = {jump_z:.0f}) across v = 0")
+    if err:
+        i = int(np.argmax(err))
+        words.append(f"held-out simulation error largest near t = {mids[i]:.3g} s ({100 * err[i]:.3g} %)")
+    return Disagreement(residual_nrmse, effective_fraction(r), regions, jump, float(jump_z), (edges_x, edges_v, mean_map),
+                        (np.array(mids), np.array(err)), "; ".join(words))
+
+
+def effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
+    """``N_eff / N = 1 / (1 + 2 sum_j rho_j)`` from the autocorrelation of the residual rows ``r``."""
+    r = r - r.mean()
+    c0, total = float(r @ r), 0.0
+    for j in range(1, min(max_lag, len(r) - 1)):
+        rho = float(r[:-j] @ r[j:]) / c0
+        if abs(rho) < 0.05:
+            break
+        total += rho
+    return float(min(1.0, 1.0 / max(1.0 + 2.0 * total, 1.0)))

@@ -1,0 +1,217 @@
+"""Results of the discrepancy workflow: frozen value objects and their readable report."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .._format import format_uncertain
+from .._model import IdentifiedModel
+
+__all__ = ["Decision", "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport"]
+
+
+class Decision(str, enum.Enum):
+    """The outcome of one discrepancy iteration (its value is the text the JSON report carries)."""
+
+    ADDED = "added"
+    NOTHING_MISSING = "nothing missing"
+    AMBIGUOUS = "ambiguous"
+    NO_HELDOUT_GAIN = "no held-out gain"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """Where a model and the data disagree.
+
+    Attributes
+    ----------
+    residual_nrmse : float
+        RMS of the velocity-equation residual over the training weak-form rows / std of the target.
+    effective_fraction : float
+        ``N_eff / N = 1 / (1 + 2 sum_j rho_j)`` from the residual's autocorrelation (lags summed
+        while ``|rho_j| > 0.05``): 1 for independent rows; below 1 when the residual carries
+        structure correlated across windows (a real record's unmodelled dynamics), which the
+        evidence would otherwise over-count. The evidence of the step uses statistics scaled by it.
+    regions : tuple of (str, float, float)
+        ``(region, share of rows, share of residual energy)`` for velocity reversals, peak speed,
+        large displacement; a region whose energy share exceeds its row share concentrates it.
+    jump, jump_z : float
+        Mean residual just above ``v = 0`` minus just below (target units) and its z-score: a jump
+        is the fingerprint of friction.
+    residual_map : tuple of ndarray
+        ``(x_edges, v_edges, mean residual (n_x, n_v))`` over the phase plane (NaN in empty bins).
+    error_time : tuple of ndarray
+        ``(segment mid-times, NRMSE per segment)`` of the held-out simulation (or equation) error.
+    summary : str
+        The above in words.
+    """
+
+    residual_nrmse: float
+    effective_fraction: float
+    regions: tuple
+    jump: float
+    jump_z: float
+    residual_map: tuple = field(repr=False)
+    error_time: tuple = field(repr=False)
+    summary: str = ""
+
+
+@dataclass(frozen=True)
+class EffectScore:
+    """The score of one catalogue effect in one iteration.
+
+    Attributes
+    ----------
+    effect, label, description, family : str
+        Catalogue name, name with the shape value, physical words, family.
+    terms : tuple of str
+        The term(s) added to the velocity equation.
+    evidence_gain : float
+        Log-evidence change (nats) of adding the term(s); for a grid effect, of the best grid
+        point minus ``log(grid size)``.
+    coef, std : float
+        Posterior mean and standard deviation of the (first) term's coefficient after the refit.
+    physical : float or None
+        The coefficient as a force per unit term, ``-coef / coef(input)`` (None without a single
+        input term).
+    admissible : bool
+    reason : str
+        Why it is not admissible or not in the model, "" otherwise.
+    error_after : float or None
+        Held-out error of the refitted model with this effect (None when not evaluated).
+    shape : float or None
+    """
+
+    effect: str
+    label: str
+    description: str
+    family: str
+    terms: tuple
+    evidence_gain: float
+    coef: float
+    std: float
+    physical: float | None
+    admissible: bool
+    reason: str
+    error_after: float | None
+    shape: float | None = None
+
+
+@dataclass(frozen=True)
+class DiscrepancyStep:
+    """One iteration: the model, where it disagrees, the scores and the decision.
+
+    Attributes
+    ----------
+    model : IdentifiedModel
+        The current model, fitted on the training record.
+    error_train, error_heldout : float
+        Its error on the training and held-out records.
+    disagreement : Disagreement
+    scores : tuple of EffectScore
+        Sorted by evidence gain, best first.
+    threshold : float
+        The evidence gain an effect had to clear (nats).
+    null_gains : tuple of float
+        Largest gain of any effect on each bootstrap record simulated from the current model.
+    decision : Decision
+    verdict : str
+    added : EffectScore or None
+    model_after : IdentifiedModel or None
+    error_after : float or None
+    """
+
+    iteration: int
+    model: IdentifiedModel
+    error_train: float
+    error_heldout: float
+    disagreement: Disagreement
+    scores: tuple
+    threshold: float
+    null_gains: tuple
+    decision: Decision
+    verdict: str
+    added: EffectScore | None = None
+    model_after: IdentifiedModel | None = None
+    error_after: float | None = None
+
+
+@dataclass(frozen=True)
+class DiscrepancyReport:
+    """The outcome of :func:`discrepancy`.
+
+    Attributes
+    ----------
+    initial, final : IdentifiedModel
+    steps : tuple of DiscrepancyStep
+    verdict : str
+    error_measure : str
+        ``"simulation"`` or ``"equation"``.
+    noise : dict
+        Estimated noise level per channel.
+    """
+
+    initial: IdentifiedModel
+    final: IdentifiedModel
+    steps: tuple
+    verdict: str
+    error_measure: str
+    noise: dict = field(default_factory=dict)
+
+    @property
+    def added(self) -> list[EffectScore]:
+        """The effects added, in order."""
+        return [s.added for s in self.steps if s.added is not None]
+
+    def to_json(self) -> dict:
+        """``{"added": [...], "verdict": ..., "final": <identify JSON>, "steps": [...]}``."""
+        added = [
+            {"effect": s.added.effect, "term": ", ".join(s.added.terms), "coef": s.added.coef,
+             "std": s.added.std, "evidence_gain": s.added.evidence_gain, "physical": s.added.physical,
+             "description": s.added.description, "error_before": s.error_heldout, "error_after": s.error_after}
+            for s in self.steps if s.added is not None
+        ]
+        steps = [
+            {"iteration": s.iteration, "decision": s.decision.value, "verdict": s.verdict, "threshold": s.threshold,
+             "null_gains": list(s.null_gains), "error_train": s.error_train, "error_heldout": s.error_heldout,
+             "where": s.disagreement.summary,
+             "scores": [{"effect": c.label, "evidence_gain": c.evidence_gain, "coef": c.coef, "std": c.std,
+                         "admissible": c.admissible, "error_after": c.error_after} for c in s.scores]}
+            for s in self.steps
+        ]
+        return {"added": added, "verdict": self.verdict, "final": self.final.to_json(),
+                "error_measure": self.error_measure, "steps": steps}
+
+    def __str__(self) -> str:
+        lines = ["model before:", _indent(str(self.initial))]
+        for s in self.steps:
+            lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
+                         f"training, {100 * s.error_heldout:.3g} % held out")
+            lines.append("where it disagrees: " + s.disagreement.summary)
+            lines.append(f"candidates (threshold {s.threshold:.1f} nats; null gains "
+                         + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):")
+            lines.append(f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}")
+            for c in s.scores:
+                err = "-" if c.error_after is None else f"{100 * c.error_after:.3g} %"
+                coef = format_uncertain(c.coef, c.std) if np.isfinite(c.coef) else "-"
+                note = "" if c.admissible else f"  ({c.reason})"
+                lines.append(f"  {c.label:34s} {c.evidence_gain:12.1f} {coef:>22s} {err:>15s}{note}")
+            lines.append("decision: " + s.verdict)
+        lines += ["\nmodel after:", _indent(str(self.final))]
+        if self.steps:
+            first, last = self.steps[0], self.steps[-1]
+            after = last.error_after if last.error_after is not None else last.error_heldout
+            lines.append(f"held-out {self.error_measure} error: {100 * first.error_heldout:.3g} % before, "
+                         f"{100 * after:.3g} % after")
+        lines.append("verdict: " + self.verdict)
+        return "\n".join(lines)
+
+
+def _indent(text: str) -> str:
+    return "\n".join("  " + line for line in text.splitlines())

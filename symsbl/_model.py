@@ -1,0 +1,315 @@
+"""The identified model: posterior per equation, rendered as a symbolic ODE.
+
+An :class:`IdentifiedModel` holds, for each state equation ``x_k' = sum_i beta_i d_i(x, u)``, the
+kept candidate terms (CasADi expressions, the single source of truth for names and sympy forms),
+their posterior means, standard deviations and covariance, prior precisions, the noise variance
+and the log evidence. It renders as
+
+- a readable print with uncertainties, ``x2' = 1.000(0.001) F - 1.0000e4(3) x1 - ...``;
+- a sympy system (``to_sympy``, ``to_latex``, ``_repr_latex_``);
+- a CasADi :class:`~symsbl.OdeSystem` whose coefficients are parameters, ready to simulate;
+- JSON (``to_json`` / ``from_json``, ``save`` / ``load``), the format the command line writes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import casadi as ca
+import numpy as np
+import sympy as sp
+
+from ._errors import ParameterError, expected
+from ._format import format_uncertain, pretty
+from ._symbolic import casadi_to_sympy
+
+if TYPE_CHECKING:
+    from ._ode import OdeSystem
+
+__all__ = ["TermEstimate", "Equation", "IdentifiedModel"]
+
+@dataclass(frozen=True)
+class TermEstimate:
+    """Posterior of one kept term of one equation.
+
+    Attributes
+    ----------
+    expr : casadi.SX
+        The candidate term, a scalar expression of the model's states and inputs.
+    coef, std : float
+        Posterior mean and standard deviation of its coefficient, in the data's units.
+    alpha : float
+        Optimised prior precision of the coefficient.
+    evidence : float
+        Log evidence (nats) lost if the term is removed; ``nan`` when unknown.
+    alternatives : tuple of str
+        Candidates the data cannot tell apart from this term (same fit within the evidence
+        tolerance); the simplest of the group is the one kept.
+    """
+
+    expr: ca.SX
+    coef: float
+    std: float
+    alpha: float = math.nan
+    evidence: float = math.nan
+    alternatives: tuple[str, ...] = ()
+
+    @property
+    def sympy(self) -> sp.Expr:
+        """The term as a sympy expression."""
+        return casadi_to_sympy(self.expr)
+
+    @property
+    def name(self) -> str:
+        """The term's name, its sympy print."""
+        return str(self.sympy)
+
+    @property
+    def snr(self) -> float:
+        """``|coef| / std``, the posterior signal-to-noise ratio of the coefficient."""
+        return abs(self.coef) / self.std if self.std > 0 else math.inf
+
+
+@dataclass(frozen=True)
+class Equation:
+    """Posterior of one state equation ``lhs' = sum_i coef_i term_i``.
+
+    Attributes
+    ----------
+    lhs : str
+        Name of the state whose derivative this is.
+    terms : tuple of TermEstimate
+        The kept terms, in library order.
+    covariance : ndarray, shape (n_terms, n_terms)
+        Posterior covariance of the kept coefficients.
+    noise_var : float
+        Estimated variance of the equation error (regression-row units).
+    log_evidence : float
+        Log marginal likelihood of the fitted equation (nats).
+    n_rows : int
+        Number of regression rows the fit used.
+    """
+
+    lhs: str
+    terms: tuple[TermEstimate, ...]
+    covariance: np.ndarray
+    noise_var: float
+    log_evidence: float
+    n_rows: int = 0
+
+    @classmethod
+    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None) -> "Equation":
+        """The equation of a fitted :class:`~symsbl.RVM`: one term per kept column, in ``fit.active_`` order.
+
+        Parameters
+        ----------
+        lhs : str
+        exprs : sequence of casadi.SX
+            The term of each kept column (``len(fit.active_)`` of them).
+        fit : RVM
+            Fitted on the columns the terms belong to.
+        n_rows : int
+            Regression rows behind the fit.
+        alternatives : sequence of tuple of str, optional
+            Per kept term, the candidates the data cannot tell apart from it.
+        """
+        active = [int(i) for i in fit.active_]
+        alternatives = alternatives or [()] * len(active)
+        terms = tuple(
+            TermEstimate(expr=e, coef=float(fit.coef_[i]), std=float(math.sqrt(fit.sigma_[pos, pos])),
+                         alpha=float(fit.alpha_[i]), evidence=float(fit.evidence_contribution_[pos]),
+                         alternatives=tuple(alt))
+            for pos, (i, e, alt) in enumerate(zip(active, exprs, alternatives))
+        )
+        return cls(lhs, terms, np.array(fit.sigma_), float(fit.noise_var_), float(fit.log_evidence_), int(n_rows))
+
+    @property
+    def coefs(self) -> np.ndarray:
+        """Posterior means, shape ``(n_terms,)``."""
+        return np.array([t.coef for t in self.terms])
+
+    @property
+    def stds(self) -> np.ndarray:
+        """Posterior standard deviations, shape ``(n_terms,)``."""
+        return np.array([t.std for t in self.terms])
+
+    @property
+    def names(self) -> list[str]:
+        """Names of the kept terms."""
+        return [t.name for t in self.terms]
+
+    def coef(self, name: str) -> float:
+        """Coefficient of the term called ``name`` (0.0 if the term was not kept)."""
+        for t in self.terms:
+            if t.name == name:
+                return t.coef
+        return 0.0
+
+    def rhs_sympy(self) -> sp.Expr:
+        """Right-hand side with the posterior means as coefficients."""
+        return sp.Add(*[sp.Float(t.coef) * t.sympy for t in self.terms])
+
+    def __str__(self) -> str:
+        parts = []
+        for t in self.terms:
+            text = format_uncertain(t.coef, t.std, signed=bool(parts))
+            label = pretty(t.name)
+            body = text if label == "1" else f"{text} {label}"
+            if t.alternatives:
+                body += " (indistinguishable here from " + ", ".join(pretty(a) for a in t.alternatives) + ")"
+            parts.append(body)
+        return f"{self.lhs}' = " + (" ".join(parts) if parts else "0")
+
+
+@dataclass(frozen=True)
+class IdentifiedModel:
+    """An identified system of ODEs, one :class:`Equation` per state.
+
+    Attributes
+    ----------
+    states, inputs : tuple of casadi.SX
+        Scalar symbols of the states (in equation order) and of the inputs.
+    equations : tuple of Equation
+        One per state, same order as ``states``.
+    metadata : dict
+        Free-form provenance (derivative strategy, library size, sample rate ...).
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> model.to_sympy()[1].lhs
+    Derivative(x2(t), t)
+    >>> "dot{x_{2}} &= 0.999 F" in model.to_latex(digits=3)
+    True
+
+    It saves to JSON and comes back with the same equations:
+
+    >>> import os, tempfile
+    >>> path = os.path.join(tempfile.mkdtemp(), "duffing.json")
+    >>> model.save(path)
+    >>> str(symsbl.IdentifiedModel.load(path)) == str(model)
+    True
+    >>> model.to_system().state_names  # an OdeSystem to simulate
+    ('x1', 'x2')
+    """
+
+    states: tuple[ca.SX, ...]
+    inputs: tuple[ca.SX, ...]
+    equations: tuple[Equation, ...]
+    metadata: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the states."""
+        return tuple(s.name() for s in self.states)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Names of the inputs."""
+        return tuple(u.name() for u in self.inputs)
+
+    def equation(self, lhs: str) -> Equation:
+        """The equation of the state called ``lhs``."""
+        for eq in self.equations:
+            if eq.lhs == lhs:
+                return eq
+        raise ParameterError(expected("lhs", f"one of the states {list(self.state_names)}", lhs))
+
+    def __str__(self) -> str:
+        return "\n".join(str(eq) for eq in self.equations)
+
+    # -- symbolic forms -------------------------------------------------------------------
+    def to_sympy(self) -> list[sp.Eq]:
+        """The system as sympy equations ``Eq(Derivative(x(t), t), rhs)``."""
+        t = sp.Symbol("t", real=True)
+        out = []
+        for eq in self.equations:
+            lhs = sp.Derivative(sp.Function(eq.lhs)(t), t)
+            out.append(sp.Eq(lhs, eq.rhs_sympy(), evaluate=False))
+        return out
+
+    def to_latex(self, digits: int = 4) -> str:
+        """LaTeX of the system, coefficients rounded to ``digits`` significant digits."""
+        lines = []
+        for eq in self.equations:
+            rhs = sp.Add(*[sp.Float(t.coef, digits) * t.sympy for t in eq.terms])
+            lines.append(rf"\dot{{{sp.latex(sp.Symbol(eq.lhs))}}} &= {sp.latex(rhs)}")
+        return r"\begin{aligned}" + r" \\ ".join(lines) + r"\end{aligned}"
+
+    def _repr_latex_(self) -> str:
+        return "$" + self.to_latex() + "$"
+
+    def parameters(self) -> tuple[list[ca.SX], np.ndarray]:
+        """Coefficient symbols ``c_<state>_<i>`` and their posterior means."""
+        syms, values = [], []
+        for eq in self.equations:
+            for i, t in enumerate(eq.terms):
+                syms.append(ca.SX.sym(f"c_{eq.lhs}_{i}"))
+                values.append(t.coef)
+        return syms, np.array(values)
+
+    def covariance(self) -> np.ndarray:
+        """Block-diagonal posterior covariance of all coefficients, in ``parameters`` order."""
+        from scipy.linalg import block_diag
+
+        blocks = [np.atleast_2d(eq.covariance) for eq in self.equations if eq.terms]
+        return block_diag(*blocks) if blocks else np.zeros((0, 0))
+
+    def to_system(self, name: str = "identified") -> OdeSystem:
+        """The model as a CasADi :class:`~symsbl.OdeSystem` with the coefficients as
+        parameters (values: the posterior means)."""
+        from ._ode import OdeSystem
+
+        syms, values = self.parameters()
+        rhs, k = [], 0
+        for eq in self.equations:
+            expr = ca.SX(0)
+            for t in eq.terms:
+                expr = expr + syms[k] * t.expr
+                k += 1
+            rhs.append(expr)
+        return OdeSystem(
+            states=tuple(self.states),
+            inputs=tuple(self.inputs),
+            rhs=tuple(rhs),
+            parameters=tuple(syms),
+            parameter_values=tuple(float(v) for v in values),
+            name=name,
+        )
+
+    # -- JSON -------------------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document written by ``symsbl identify --json`` (see :mod:`symsbl._model_json`)."""
+        from ._model_json import model_to_json
+
+        return model_to_json(self)
+
+    def save(self, path: str | Path) -> None:
+        """Write ``to_json()`` to ``path`` (through a temporary file renamed into place)."""
+        from ._model_json import save_model
+
+        save_model(self, path)
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any] | str) -> IdentifiedModel:
+        """Rebuild a model from ``to_json()`` output (a dict or a JSON string), read as data: term
+        texts are parsed by a whitelist grammar, never evaluated."""
+        from ._model_json import model_from_json
+
+        return model_from_json(cls, doc)
+
+    @classmethod
+    def load(cls, path: str | Path) -> IdentifiedModel:
+        """Read a model saved by :meth:`save` or ``symsbl identify --json``."""
+        from ._model_json import load_model
+
+        return load_model(cls, path)
