@@ -19,12 +19,16 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS"
 PUBLISHED = {"M": 95.1089, "Fv": 203.5034, "Fc": 20.3935, "OF": -3.1648}
 
 
+#: Exit code of an example that cannot run here (the data are missing): reported as skipped, not passed.
+SKIPPED = 77
+
+
 def available() -> bool:
-    """Whether the records are there; prints why not when they are missing."""
-    if (DATA / "DATA_EMPS.mat").exists():
+    """True when the records are there; otherwise says why and exits with :data:`SKIPPED`."""
+    if (DATA / "DATA_EMPS.mat").exists() and (DATA / "DATA_EMPS_PULSES.mat").exists():
         return True
     print(f"skipped: the EMPS data are not at {DATA} (expected ../shared/data/EMPS next to the repository)")
-    return False
+    raise SystemExit(SKIPPED)
 
 
 def load(name):

@@ -293,6 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2), already printed in one line
+        return exc.code if isinstance(exc.code, int) else 2
     except KeyboardInterrupt:
         return _fail("", "interrupted", 130)
     try:

@@ -61,8 +61,14 @@ def safe_output(path, inputs: Sequence = (), *, what: str = "--json") -> Path:
     if not parent.is_dir():
         raise DataError(expected(what, "a file in an existing directory", f"{str(path)!r}",
                                  f"create {str(parent)!r} first", raw=True))
-    if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise DataError(expected(what, "a writable location", f"{str(path)!r}, which is not writable", raw=True))
+    try:  # the only reliable test of a directory: write to it
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError:
+        raise DataError(expected(what, "a writable location", f"{str(path)!r}, in a directory that cannot be "
+                                 "written", raw=True)) from None
+    if path.exists() and not os.access(path, os.W_OK):
+        raise DataError(expected(what, "a writable location", f"{str(path)!r}, which is read-only", raw=True))
     return path
 
 
@@ -73,7 +79,11 @@ def write_atomic(path, write: Callable[[object], None], *, binary: bool = True, 
     ``suffix`` keeps the extension for writers that read it (matplotlib's ``savefig``).
     """
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent or ".")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent or ".")
+    except OSError as err:
+        raise DataError(expected(str(path), "a writable location", f"an error creating it ({err.strerror})",
+                                 raw=True)) from None
     try:
         with os.fdopen(fd, "wb" if binary else "w") as fh:
             write(fh)

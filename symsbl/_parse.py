@@ -32,14 +32,14 @@ from functools import reduce
 
 import casadi as ca
 
-from ._errors import ExpressionError
+from ._errors import ExpressionError, expected
 
 __all__ = ["parse_expression", "FUNCTIONS", "MAX_LENGTH", "MAX_DEPTH"]
 
 #: Longest expression text accepted (characters).
 MAX_LENGTH = 10_000
-#: Deepest nesting of parentheses and operators accepted.
-MAX_DEPTH = 100
+#: Deepest nesting of parentheses and unary operators accepted (each level costs about ten Python frames).
+MAX_DEPTH = 50
 
 
 def _min_max(fun):
@@ -123,10 +123,8 @@ class _Parser:
     def nested(self, rule):
         self.depth += 1
         if self.depth > MAX_DEPTH:
-            raise ExpressionError(
-                f"{self.where}: expected at most {MAX_DEPTH} levels of nesting, received deeper text; "
-                "simplify the expression"
-            )
+            raise ExpressionError(expected(self.where, f"at most {MAX_DEPTH} levels of nesting", "deeper text",
+                                           "simplify the expression", raw=True))
         try:
             return rule()
         finally:
@@ -322,4 +320,8 @@ def parse_expression(text: str, symbols: Mapping[str, ca.SX], *, where: str = "e
         )
     if not text.strip():
         raise ExpressionError(f"{where}: expected an expression such as 'x1**2', received an empty string")
-    return _Parser(text, symbols, where).parse()
+    try:
+        return _Parser(text, symbols, where).parse()
+    except RecursionError:  # a guard behind MAX_DEPTH, for a caller already deep in its own stack
+        raise ExpressionError(expected(where, f"at most {MAX_DEPTH} levels of nesting", "deeper text",
+                                       "simplify the expression", raw=True)) from None

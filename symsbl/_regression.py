@@ -186,11 +186,12 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     trajectories = as_trajectories(data)
     if not isinstance(library, Library):
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
+    for traj in trajectories:
+        check_magnitude(traj)
     longest = max(trajectories, key=lambda tr: tr.n_samples)
     diff = get_differentiator(derivative).resolve(longest.t, longest.states, n_terms=len(library))
     columns = []
     for traj in trajectories:  # validate everything before the expensive pass
-        check_magnitude(traj)
         check_variation(traj.state_names, traj.states.min(axis=0), traj.states.max(axis=0))
         check_inputs_vary(traj, library)
         columns.append(library_columns(traj.state_names, traj.input_names, library))

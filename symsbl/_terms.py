@@ -45,7 +45,7 @@ def _check_size(n_terms: int, what: str) -> None:
         gram = 8 * n_terms**2 / 2**30
         raise LibraryError(expected(
             "degree", f"a library of at most {MAX_CANDIDATES} candidate terms",
-            f"{what} of {n_terms} terms (a Gram matrix of {gram:.3g} GiB)",
+            f"{n_terms} terms ({what}; their Gram matrix alone would take {gram:.3g} GiB)",
             "lower the degree or use fewer variables", raw=True))
 
 

@@ -7,15 +7,15 @@ import sys
 import numpy as np
 import pytest
 
-from symsbl import Multisine, Sine, simulate, systems, time_grid, write_trajectory
+from symsbl import Multisine, simulate, systems, time_grid, write_trajectory
 from symsbl._cli import main
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
+def files(tmp_path_factory, duffing_system, duffing_train):
     d = tmp_path_factory.mktemp("cli")
-    system = systems.duffing()
-    train = simulate(system, time_grid(1.0, 32768), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    system = duffing_system
+    train = duffing_train
     held = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=1))
     write_trajectory(train, d / "train.csv")
     write_trajectory(held, d / "held.npz")

@@ -10,15 +10,11 @@ from symsbl import (
     DataError,
     PointDifference,
     SavitzkyGolay,
-    Sine,
     WeakForm,
     identify_stream,
     paper,
-    simulate,
     stream_stats,
     symbols,
-    systems,
-    time_grid,
 )
 
 dask = pytest.importorskip("dask", reason="Dask is optional: pip install symsbl[dask]")
@@ -32,9 +28,8 @@ NAMES = dict(states=("x1", "x2"), inputs=("F",))
 
 
 @pytest.fixture(scope="module")
-def record():
-    t = time_grid(0.5, 8192)
-    return simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=3)
+def record(duffing_short):
+    return duffing_short
 
 
 @pytest.fixture(scope="module")

@@ -13,14 +13,10 @@ from symsbl import (
     Equation,
     IdentifiedModel,
     Multisine,
-    Sine,
     TermEstimate,
     Trajectory,
-    identify,
-    paper,
     simulate,
     symbols,
-    systems,
     time_grid,
     validate_model,
 )
@@ -28,11 +24,8 @@ from symsbl._format import format_uncertain
 
 
 @pytest.fixture(scope="module")
-def duffing():
-    system = systems.duffing()
-    data = simulate(system, time_grid(1.0, 32768), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
-    model = identify(data, paper(symbols("x1 x2"), symbols("F"), degree=3))
-    return system, data, model
+def duffing(duffing_system, duffing_train, duffing_model):
+    return duffing_system, duffing_train, duffing_model
 
 
 @pytest.mark.parametrize(

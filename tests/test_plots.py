@@ -24,14 +24,9 @@ FS = 4096.0
 
 
 @pytest.fixture(scope="module")
-def duffing_case():
-    system = symsbl.systems.duffing()
-    train = symsbl.simulate(system, symsbl.time_grid(1.0, FS), inputs=symsbl.Sine(100.0, 10.0)).with_noise(0.004, seed=0)
-    model = symsbl.identify(train, symsbl.paper(system.states, system.inputs, degree=3))
-    heldout_input = symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)
-    heldout = symsbl.simulate(system, symsbl.time_grid(0.5, FS), inputs=heldout_input).with_noise(0.004, seed=2)
-    validation = symsbl.validate_model(model, heldout, n_band=6)
-    return train, model, validation
+def duffing_case(duffing_train, duffing_model, duffing_heldout):
+    validation = symsbl.validate_model(duffing_model, duffing_heldout, n_band=6)
+    return duffing_train, duffing_model, validation
 
 
 def test_figure2_panels_and_bars(duffing_case, tmp_path):

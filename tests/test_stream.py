@@ -32,9 +32,8 @@ STRATEGIES = [WeakForm(window=37), WeakForm(window=4, power=2), PointDifference(
 
 
 @pytest.fixture(scope="module")
-def record():
-    t = time_grid(0.5, 8192)
-    return simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=1)
+def record(duffing_short):
+    return duffing_short
 
 
 def _pieces(traj, sizes):

@@ -58,7 +58,7 @@ def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str]
         terms = []
         for raw in filter(None, (r.strip() for r in rhs.split(","))):
             try:
-                expr = parse_expression(raw, symbols, where=f"--base: the term {raw!r} of state {lhs!r}")
+                expr = parse_expression(raw, symbols, where=f"--base (state {lhs!r})")
             except ExpressionError as err:
                 raise LibraryError(str(err)) from None
             terms.append(ca.SX(1) if expr.is_constant() else expr)

@@ -1,0 +1,428 @@
+"""Malformed input, tried as a hostile new user would: every failure is one line with its exit code.
+
+The battery runs the command line in process (``symsbl._cli.main``) on broken files and options and
+matches each error message exactly; model files and ``--base`` strings carrying code must never run
+it; random corruption of a CSV file and random mutations of a model file must end in a result or a
+one-line :class:`symsbl.SymsblError`, never a traceback, and never change an input file.
+"""
+
+import hashlib
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import exactly
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import symsbl
+from symsbl._cli import EXIT_CODES, main
+
+CANARY = "symsbl_canary_{}"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, duffing_short):
+    d = tmp_path_factory.mktemp("malformed")
+    train = duffing_short
+    symsbl.write_trajectory(train, d / "train.csv")
+    symsbl.write_trajectory(train, d / "train.npz")
+    code = main(["identify", str(d / "train.csv"), "--states", "x1,x2", "--inputs", "F", "--library", "poly",
+                 "--json", str(d / "model.json"), "--quiet"])
+    assert code == 0
+    return d
+
+
+def _digest(directory: Path) -> dict:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(directory.iterdir()) if p.is_file()}
+
+
+def run(argv, capsys):
+    code = main([*argv, "--quiet"] if argv and argv[0] in ("identify", "validate", "simulate", "discrepancy", "demo")
+                else argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _dead_input(d: Path) -> Path:
+    data = np.loadtxt(d / "train.csv", delimiter=",", skiprows=1)
+    data[:, 3] = 0.0
+    np.savetxt(d / "dead.csv", data, delimiter=",", header="t,x1,x2,F", comments="", fmt="%.17g")
+    return d / "dead.csv"
+
+
+#: (name, files to make, argv with {d} for the folder, exit code, the one line on stderr)
+CLI_CASES = [
+    ("unknown derivative", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--derivative", "spline"], 2,
+     "symsbl identify: error: argument --derivative: invalid choice: 'spline' (choose from 'weak', 'central', "
+     "'point', 'savgol')"),
+    ("derivative in capitals", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--derivative", "WEAK"], 2,
+     "symsbl identify: error: argument --derivative: invalid choice: 'WEAK' (choose from 'weak', 'central', "
+     "'point', 'savgol')"),
+    ("degree 0", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--degree", "0"], 2,
+     "symsbl identify: error: --degree: expected an integer >= 1, received 0"),
+    ("degree 100", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--degree", "100"], 2,
+     "symsbl identify: error: degree: expected a library of at most 5000 candidate terms, received 4598126 terms "
+     "(degree 100 in 4 variables; their Gram matrix alone would take 1.58e+05 GiB); lower the degree or use fewer "
+     "variables"),
+    ("degree not a number", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--degree", "abc"], 2,
+     "symsbl identify: error: argument --degree: invalid int value: 'abc'"),
+    ("json over the data", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/train.csv"], 2,
+     "symsbl identify: error: --json: expected an output file other than the inputs, received '{d}/train.csv', "
+     "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("json over a symbolic link to the data", "link",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/link.csv"], 2,
+     "symsbl identify: error: --json: expected an output file other than the inputs, received '{d}/link.csv', "
+     "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("json over a hard link to the data", "hardlink",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/hard.csv"], 2,
+     "symsbl identify: error: --json: expected an output file other than the inputs, received '{d}/hard.csv', "
+     "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("json into a directory", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}"], 2,
+     "symsbl identify: error: --json: expected a file path, received '{d}', which is a directory"),
+    ("json in a missing directory", None,
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/no/such/m.json"], 2,
+     "symsbl identify: error: --json: expected a file in an existing directory, received '{d}/no/such/m.json'; "
+     "create '{d}/no/such' first"),
+    ("validate json over the model", None, ["validate", "{d}/model.json", "{d}/train.csv", "--json", "{d}/model.json"],
+     2, "symsbl validate: error: --json: expected an output file other than the inputs, received '{d}/model.json', "
+        "which is the input '{d}/model.json'; choose another file name; inputs are never modified"),
+    ("simulate (alias) json over the data", None,
+     ["simulate", "{d}/model.json", "{d}/train.npz", "--json", "{d}/train.npz"], 2,
+     "symsbl simulate: error: --json: expected an output file other than the inputs, received '{d}/train.npz', "
+     "which is the input '{d}/train.npz'; choose another file name; inputs are never modified"),
+    ("discrepancy json over the data", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",
+      "--json", "{d}/train.csv"], 2,
+     "symsbl discrepancy: error: --json: expected an output file other than the inputs, received '{d}/train.csv', "
+     "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("plot with an unknown extension", None, ["validate", "{d}/model.json", "{d}/train.csv", "--plot", "{d}/x.xyz"], 2,
+     "symsbl validate: error: --plot: expected a file ending in one of ['.png', '.pdf', '.svg', '.jpg', '.jpeg', "
+     "'.eps', '.ps', '.tif', '.tiff', '.webp'], received '{d}/x.xyz'"),
+    ("demo with a negative seed", None, ["demo", "--seed", "-1"], 2,
+     "symsbl demo: error: --seed: expected an integer >= 0, received -1"),
+    ("demo plots into a file", None, ["demo", "--plots", "{d}/train.csv"], 2,
+     "symsbl demo: error: --plots: expected a directory (created if missing), received '{d}/train.csv', which is a "
+     "file"),
+    ("negative sample rate", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--fs", "-3"], 2,
+     "symsbl identify: error: fs: expected a positive sample rate in Hz, received -3.0"),
+    ("missing data file", None, ["identify", "{d}/nope.csv", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/nope.csv: expected an existing data file, received no such file"),
+    ("binary bytes in a CSV", "garbage", ["identify", "{d}/garbage.csv", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/garbage.csv: expected a text CSV file, received binary content (NUL bytes); "
+     "export the record as CSV text, .npz or .mat"),
+    ("garbage in an npz", "garbage", ["identify", "{d}/garbage.npz", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/garbage.npz: expected a readable .npz file (a zip archive written by "
+     "numpy.savez), received a file that is not a zip archive"),
+    ("garbage in a mat", "garbage", ["identify", "{d}/garbage.mat", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/garbage.mat: expected a readable MATLAB .mat file (v4-v7.2), received an "
+     "unreadable file (MatReadError: Mat file appears to be truncated); save with -v7 or export CSV"),
+    ("library file that raises", "libraries",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--library", "{d}/raises.py"], 2,
+     "symsbl identify: error: --library '{d}/raises.py': expected a Python file that runs, received "
+     "RuntimeError: boom"),
+    ("library file with a syntax error", "libraries",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--library", "{d}/syntax.py"], 2,
+     "symsbl identify: error: --library '{d}/syntax.py': expected a Python file that runs, received SyntaxError: "
+     "invalid syntax (syntax.py, line 1)"),
+    ("library file that calls sys.exit", "libraries",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--library", "{d}/exits.py"], 2,
+     "symsbl identify: error: --library '{d}/exits.py': expected a file that defines `library`, received a file "
+     "that called sys.exit(0)"),
+    ("dead-sensor input", "dead", ["identify", "{d}/dead.csv", "--states", "x1,x2", "--inputs", "F"], 2,
+     "symsbl identify: error: input 'F': expected a column that varies, received a constant 0; remove it from the "
+     "inputs (a dead sensor?); a free decay needs no input column"),
+    ("discrepancy with a dead-sensor input", "dead",
+     ["discrepancy", "{d}/dead.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2"], 2,
+     "symsbl discrepancy: error: input 'F': expected a column that varies, received a constant 0; remove it from "
+     "the inputs (a dead sensor?); a free decay needs no input column"),
+    ("unknown error measure", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--base", "x1: x2; x2: x1", "--error", "rms"], 2,
+     "symsbl discrepancy: error: argument --error: invalid choice: 'rms' (choose from 'simulation', 'equation')"),
+    ("missing required option", None, ["identify", "{d}/train.csv"], 2,
+     "symsbl identify: error: the following arguments are required: --states"),
+    ("no command", None, [], 2,
+     "symsbl: error: the following arguments are required: command"),
+]
+
+
+def _make(d: Path, kind: str | None) -> None:
+    if kind == "link" and not (d / "link.csv").exists():
+        (d / "link.csv").symlink_to(d / "train.csv")
+    elif kind == "hardlink" and not (d / "hard.csv").exists():
+        os.link(d / "train.csv", d / "hard.csv")
+    elif kind == "garbage":
+        for ext in (".csv", ".npz", ".mat"):
+            (d / f"garbage{ext}").write_bytes(b"garbage\x00\x01\x02\xff")
+    elif kind == "libraries":
+        _write(d / "raises.py", "raise RuntimeError('boom')\n")
+        _write(d / "syntax.py", "def f(:\n")
+        _write(d / "exits.py", "import sys\nsys.exit(0)\n")
+    elif kind == "dead":
+        _dead_input(d)
+
+
+@pytest.mark.parametrize("name, kind, argv, code, line", CLI_CASES, ids=[c[0] for c in CLI_CASES])
+def test_every_cli_failure_is_one_line_with_its_exit_code(files, capsys, name, kind, argv, code, line):
+    _make(files, kind)
+    before = _digest(files)
+    got, _, err = run([a.format(d=files) for a in argv], capsys)
+    assert got == code and code in EXIT_CODES
+    assert err == line.format(d=files) + "\n", err
+    assert _digest(files) == before  # no input changed, no output left behind
+
+
+PAYLOAD = "__import__('os').system('touch {canary}')"
+
+
+def _model_doc(files) -> dict:
+    return json.loads((files / "model.json").read_text())
+
+
+def _string_fields(doc, path=()):
+    """Every (path, value) of a string in the model document."""
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _string_fields(v, path + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _string_fields(v, path + (i,))
+    elif isinstance(doc, str):
+        yield path, doc
+
+
+def _set(doc, path, value):
+    for key in path[:-1]:
+        doc = doc[key]
+    doc[path[-1]] = value
+
+
+def test_code_planted_in_any_string_field_of_a_model_file_never_runs(files, tmp_path, capsys):
+    doc = _model_doc(files)
+    fields = list(_string_fields(doc))
+    assert len(fields) > 10
+    for k, (path, value) in enumerate(fields):
+        canary = tmp_path / CANARY.format(k)
+        planted = json.loads(json.dumps(doc))
+        _set(planted, path, value + " + " + PAYLOAD.format(canary=canary))
+        model_file = tmp_path / f"planted{k}.json"
+        model_file.write_text(json.dumps(planted))
+        code, _, err = run(["validate", str(model_file), str(files / "train.csv")], capsys)
+        assert not canary.exists(), path
+        assert err.count("\n") <= 1, err
+        # fields symsbl only displays (alternatives, metadata) may hold any text; the others are refused
+        if path[0] not in ("metadata",) and "alternatives" not in path:
+            assert code == 2 and err.startswith("symsbl validate: error: model JSON"), (path, err)
+
+
+def test_code_planted_in_the_base_model_never_runs(files, tmp_path, capsys):
+    canary = tmp_path / CANARY.format("base")
+    base = f"x1: x2; x2: F, x1, {PAYLOAD.format(canary=canary)}"
+    code, _, err = run(["discrepancy", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
+                        "--base", base], capsys)
+    assert code == 2 and not canary.exists()
+    assert err == ("symsbl discrepancy: error: --base (state 'x2'): expected a term such as x1**2*Abs(x2), received "
+                   f"{PAYLOAD.format(canary=canary)!r}: the character \"'\" at position 11 is not part of the "
+                   "grammar; use numbers, the variable names, + - * / ** and the listed functions\n")
+
+
+MODEL_CASES = [
+    ("a string coefficient", lambda d: _set(d, ("equations", 1, "terms", 0, "coef"), "1.0"),
+     "model JSON.equations[1].terms[0].coef: expected a finite number, received '1.0'"),
+    ("a NaN coefficient", lambda d: _set(d, ("equations", 1, "terms", 0, "coef"), float("nan")),
+     "model JSON.equations[1].terms[0].coef: expected a finite number, received nan"),
+    ("a covariance of the wrong shape", lambda d: _set(d, ("equations", 1, "covariance"), [[1.0]]),
+     "model JSON.equations[1].covariance: expected a finite 4 x 4 array (one row per term), received shape (1, 1)"),
+    ("version 99", lambda d: _set(d, ("version",), 99),
+     "model JSON.version: expected one of [1, 2], received 99; the file was written by a newer symsbl; upgrade to "
+     "read it"),
+    ("an unknown fit", lambda d: _set(d, ("fit",), "magic"),
+     "model JSON.fit: expected one of ['equation-error', 'output-error'], received 'magic'"),
+    ("a state equation twice", lambda d: _set(d, ("equations", 1, "lhs"), "x1"),
+     "model JSON.equations[1].lhs: expected one equation per state ['x1', 'x2'], received 'x1'"),
+    ("deep nesting", lambda d: _set(d, ("equations", 1, "terms", 0, "term"), "(" * 300 + "x1" + ")" * 300),
+     "model JSON.equations[1].terms[0].term: expected at most 50 levels of nesting, received deeper text; simplify "
+     "the expression"),
+    ("attribute access", lambda d: _set(d, ("equations", 1, "terms", 0, "term"), "x1.__class__"),
+     "model JSON.equations[1].terms[0].term: expected a term such as x1**2*Abs(x2), received 'x1.__class__': the "
+     "character '.' at position 2 is not part of the grammar; use numbers, the variable names, + - * / ** and the "
+     "listed functions"),
+    ("a negative std", lambda d: _set(d, ("equations", 1, "terms", 0, "std"), -1.0),
+     "model JSON.equations[1].terms[0].std: expected a finite number >= 0 or null, received -1.0"),
+    ("not an object", lambda d: d.clear() or d.update({"format": "symsbl-model", "version": 2, "states": "x1"}),
+     "model JSON.states: expected a list of names, received 'x1'"),
+]
+
+
+@pytest.mark.parametrize("name, change, message", MODEL_CASES, ids=[c[0] for c in MODEL_CASES])
+def test_malformed_model_files_are_named(files, name, change, message):
+    doc = _model_doc(files)
+    change(doc)
+    with pytest.raises(symsbl.DataError, match=exactly(message)):
+        symsbl.IdentifiedModel.from_json(doc)
+
+
+def test_an_edited_rhs_is_reported_not_ignored(files):
+    doc = _model_doc(files)
+    eq = next(e for e in doc["equations"] if e["lhs"] == "x2")
+    eq["rhs"] = eq["rhs"].replace("F", "2*F", 1)
+    with pytest.raises(symsbl.DataError, match=r"^model JSON\.equations\[1\]\.rhs: expected the sum of the equation's "
+                                               r"terms, received .*; edit 'terms' \(the source of truth\) and delete or "
+                                               r"regenerate 'rhs'$"):
+        symsbl.IdentifiedModel.from_json(doc)
+    del eq["rhs"]  # rhs is a redundant copy: without it the model reads from its terms
+    assert symsbl.IdentifiedModel.from_json(doc).equation("x2").names == _model_names(files)
+
+
+def _model_names(files):
+    return symsbl.IdentifiedModel.load(files / "model.json").equation("x2").names
+
+
+def _mutate(doc, rng: random.Random, canary: Path):
+    """One random change to a model document: a field deleted, retyped, or replaced by a payload."""
+    paths = []
+
+    def walk(node, path):
+        paths.append(path)
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, path + (k,))
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                walk(v, path + (i,))
+
+    walk(doc, ())
+    path = rng.choice(paths[1:])
+    parent = doc
+    for key in path[:-1]:
+        parent = parent[key]
+    choice = rng.randrange(7)
+    replacement = [None, "", PAYLOAD.format(canary=canary), 1e308, -1, [1, "x", None], {"term": "x1"}][choice]
+    if rng.random() < 0.2 and isinstance(parent, dict):
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = replacement
+
+
+def test_200_random_model_mutations_never_run_code_or_crash(files, tmp_path):
+    doc = _model_doc(files)
+    record = symsbl.read_trajectory(files / "train.csv", states=["x1", "x2"], inputs=["F"]).slice(0, 400)
+    rng = random.Random(12)
+    outcomes = {"loaded": 0, "refused": 0}
+    for k in range(200):
+        canary = tmp_path / CANARY.format(f"mutation{k}")
+        mutated = json.loads(json.dumps(doc))
+        for _ in range(rng.randint(1, 3)):
+            _mutate(mutated, rng, canary)
+        try:
+            model = symsbl.IdentifiedModel.from_json(json.dumps(mutated))
+            symsbl.validate_model(model, record)
+            outcomes["loaded"] += 1
+        except symsbl.SymsblError as err:
+            assert "\n" not in str(err)
+            outcomes["refused"] += 1
+        assert not canary.exists()
+    assert outcomes["refused"] > 100 and outcomes["loaded"] > 5, outcomes
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_random_csv_corruption_never_gives_a_traceback_or_changes_the_file(files, tmp_path, data):
+    original = (files / "train.csv").read_bytes()[:6000]
+    edits = data.draw(st.lists(st.tuples(st.integers(0, len(original) - 1), st.sampled_from(["flip", "drop", "insert",
+                                                                                             "cut"]),
+                                         st.binary(min_size=1, max_size=4)), min_size=1, max_size=6))
+    corrupted = bytearray(original)
+    for pos, kind, payload in edits:
+        pos = min(pos, max(len(corrupted) - 1, 0))
+        if kind == "flip" and corrupted:
+            corrupted[pos] ^= payload[0] or 1
+        elif kind == "drop":
+            del corrupted[pos:pos + len(payload)]
+        elif kind == "insert":
+            corrupted[pos:pos] = payload
+        else:
+            del corrupted[pos:]
+    path = tmp_path / "corrupt.csv"
+    path.write_bytes(bytes(corrupted))
+    start = time.perf_counter()
+    try:
+        symsbl.read_trajectory(path, states=["x1", "x2"], inputs=["F"])
+    except symsbl.DataError as err:
+        assert "\n" not in str(err)
+    assert time.perf_counter() - start < 5.0
+    assert path.read_bytes() == bytes(corrupted)
+
+
+def test_lab_csv_dialects_are_read(tmp_path):
+    t = np.arange(64) / 1000.0
+    x = np.column_stack([np.sin(20 * t), np.cos(20 * t)])
+    lines = ["# exported by a logger", "t;x1;x2", "s;m;m/s"]
+    for k, row in enumerate(np.column_stack([t, x])):
+        if k == 10:
+            lines.append("# a comment between rows")
+        lines.append(";".join(repr(float(v)).replace(".", ",") for v in row))
+    path = tmp_path / "lab.csv"
+    path.write_bytes(b"\xef\xbb\xbf" + "\r\n".join(lines).encode())
+    record = symsbl.read_trajectory(path, states=["x1", "x2"])
+    np.testing.assert_array_equal(record.states, x)
+    np.testing.assert_array_equal(record.t, t)
+    tabbed = tmp_path / "tab.csv"
+    tabbed.write_text("t\tx1\tx2\n" + "\n".join("\t".join(repr(float(v)) for v in row) for row in np.column_stack([t, x])))
+    np.testing.assert_array_equal(symsbl.read_trajectory(tabbed, states=["x1", "x2"]).states, x)
+
+
+def test_a_rounded_time_column_is_replaced_by_fs(tmp_path):
+    fs = 32768.0
+    t = np.round(np.arange(500) / fs, 4)  # timestamps to 0.1 ms
+    x = np.column_stack([np.sin(200 * np.arange(500) / fs), np.cos(200 * np.arange(500) / fs)])
+    path = tmp_path / "rounded.csv"
+    np.savetxt(path, np.column_stack([t, x]), delimiter=",", header="t,x1,x2", comments="", fmt="%.17g")
+    with pytest.raises(symsbl.DataError, match=r"time: expected strictly increasing values, received t = 0\.0 at "
+                                               r"row 1 after t = 0\.0; sort the rows or pass --fs/fs"):
+        symsbl.read_trajectory(path, states=["x1", "x2"])
+    record = symsbl.read_trajectory(path, states=["x1", "x2"], fs=fs)
+    np.testing.assert_allclose(record.t, np.arange(500) / fs, atol=1e-15)
+    with pytest.raises(symsbl.DataError, match=r"time column 't': expected times within one step of a uniform 1000 Hz "
+                                               r"grid \(--fs\), received a deviation of"):
+        symsbl.read_trajectory(path, states=["x1", "x2"], fs=1000.0)
+
+
+def test_python_api_refuses_what_it_cannot_do():
+    rng = np.random.default_rng(0)
+    with pytest.raises(symsbl.DataError, match=exactly(
+            "rows: expected more regression rows than candidate terms (10), received 3 rows from X; use longer "
+            "records, fewer candidate terms (a lower degree) or a derivative strategy with more rows")):
+        symsbl.RVM().fit(rng.standard_normal((3, 10)), rng.standard_normal(3))
+    x1, x2 = symsbl.symbols("x1 x2")
+    t = symsbl.time_grid(0.5, 1000)
+    record = symsbl.Trajectory(t, np.column_stack([np.sin(9 * t), 9 * np.cos(9 * t)]), None, ("x1", "x2"))
+    with pytest.raises(symsbl.ParameterError, match=exactly("equivalence_nats: expected a finite number >= 0.0, "
+                                                            "received -5")):
+        symsbl.identify(record, symsbl.polynomial([x1, x2], 1), equivalence_nats=-5)
+    huge = symsbl.Trajectory(t, np.column_stack([np.sin(9 * t), 9 * np.cos(9 * t)]) * 1e300, None, ("x1", "x2"))
+    with pytest.raises(symsbl.DataError, match=r"^column 'x1': expected magnitudes below 1e\+100, received "):
+        symsbl.identify(huge, symsbl.polynomial([x1, x2], 1))
+
+
+@pytest.mark.slow
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "symsbl", "demo", "--quick"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    time.sleep(3.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert err == "symsbl demo: error: interrupted\n"
