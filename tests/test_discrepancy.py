@@ -247,8 +247,8 @@ def test_cli_discrepancy_reports_a_bad_base(tmp_path, capsys):
 @pytest.mark.parametrize("text, message", [
     ("x1 x2; x2: F", r"expected 'state: term, term'"),
     ("x1: x2; x3: F", exactly("--base: expected equations of the states ['x1', 'x2'], received 'x3'")),
-    ("x1: x2; x2: F, y", exactly("--base: the term 'y' of state 'x2': expected a variable among ['F', 'x1', 'x2'] or a constant (pi, E) in 'y', received 'y' at position 0")),
-    ("x1: x2; x2: F, x2 +* 1", exactly("--base: the term 'x2 +* 1' of state 'x2': expected a number, a variable name, a function call or '(' in 'x2 +* 1', received '*' at position 4")),
+    ("x1: x2; x2: F, y", exactly("--base (state 'x2'): expected a variable among ['F', 'x1', 'x2'] or a constant (pi, E) in 'y', received 'y' at position 0")),
+    ("x1: x2; x2: F, x2 +* 1", exactly("--base (state 'x2'): expected a number, a variable name, a function call or '(' in 'x2 +* 1', received '*' at position 4")),
     ("x1: x2", exactly("--base: expected terms for every state, received none for ['x2']")),
     ("x1: x2; x1: x2; x2: F", exactly("--base: expected one 'state: terms' part per state, received two for 'x1'")),
     ("x1: x2; x2:", r"expected 'state: term, term'"),
