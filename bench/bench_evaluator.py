@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import os
-import statistics
+import sys
 import time
 
 import numpy as np
@@ -21,6 +21,9 @@ from symsbl import Evaluator
 from symsbl import paper, polynomial
 from symsbl import symbols
 
+sys.path.insert(0, os.path.dirname(__file__))
+from _report import timed  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 N = 1_000_000
 REPEATS = 3
 CHECK = 20_000  # rows on which every method is compared with symsbl before timing
@@ -28,14 +31,8 @@ CASES = [(2, 3), (2, 6), (3, 3)]  # (n_states, degree), with one input F
 
 
 def median_time(fn, repeats=REPEATS, warmup=True) -> float:
-    if warmup:
-        fn()  # page faults of first use; slow methods were warmed up by the correctness check
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    """Median wall time of ``fn`` (the shared timer; the warm-up run takes page faults of first use)."""
+    return timed(fn, repeats, warmup=warmup, statistic="median")[1]
 
 
 def numpy_eq21(Z: np.ndarray, n_states: int, degree: int) -> np.ndarray:

@@ -11,7 +11,8 @@ Run: ``PYTHONPATH=. python bench/bench_simulate.py``
 
 from __future__ import annotations
 
-import statistics
+import os
+import sys
 import time
 
 import numpy as np
@@ -20,6 +21,9 @@ from scipy.integrate import solve_ivp
 from symsbl import systems
 from symsbl import Sine
 from symsbl import simulate, time_grid
+
+sys.path.insert(0, os.path.dirname(__file__))
+import _report  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 FS = 32768
 DEADLINE = 10.0  # seconds allowed to each scipy run on the Coulomb system
@@ -45,12 +49,8 @@ def coulomb_rhs_with_deadline(deadline, progress):
 
 
 def timed(fn, repeats):
-    out, times = None, []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times)
+    """The last result and median wall time of ``fn`` (the shared timer)."""
+    return _report.timed(fn, repeats, statistic="median")
 
 
 def rel_err(x1, ref):

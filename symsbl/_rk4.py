@@ -10,17 +10,20 @@ times). Chunks are JIT-compiled when a C compiler exists and written straight in
 
 from __future__ import annotations
 
+import hashlib
+
 import casadi as ca
 import numpy as np
 
-from ._casadi import jit_wrap
+from ._casadi import jit_lookup, jit_wrap
 from ._checks import integer
 from ._errors import SimulationError
 from ._ode import OdeSystem
 from ._progress import Progress
 from ._signals import Signal
 
-__all__ = ["rk4_step", "chunk_function", "run_rk4", "first_nonfinite_row", "JIT_MIN_STEPS"]
+__all__ = ["rk4_step", "chunk_function", "run_rk4", "run_rk4_batch", "step_inputs", "first_nonfinite_row",
+           "JIT_MIN_STEPS"]
 
 
 def first_nonfinite_row(a: np.ndarray) -> int | None:
@@ -96,19 +99,16 @@ def rk4_step(system: OdeSystem, signals: list[Signal], substeps: int) -> tuple[c
     return ca.Function("rk4_step", args, [xi], names, ["x_next"]), n_sampled * n_nodes
 
 
-def run_rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, options):
-    """Fixed-step RK4 over ``t`` in chunks of ``chunk_size`` samples; stop at the first non-finite state."""
-    substeps = integer("substeps", substeps, low=1, error=SimulationError)
-    step, n_ud = rk4_step(system, signals, int(substeps))
+def step_inputs(t, signals, substeps: int, n_ud: int, chunk: int) -> tuple[list[np.ndarray], int]:
+    """Per-step times, steps and sampled inputs at the stage nodes, padded with ``dt = 0`` (a no-op step) up
+    to a whole number of chunks; and the padded length."""
     n_steps = t.size - 1
-    chunk = max(1, min(int(chunk_size), n_steps))
     n_pad = -(-n_steps // chunk) * chunk
-    # Per-step inputs, padded with dt = 0 (a no-op step) up to a whole number of chunks.
     tk = np.full(n_pad, t[-1])
     tk[:n_steps] = t[:-1]
     dt = np.zeros(n_pad)
     dt[:n_steps] = np.diff(t)
-    args = [tk, dt, np.tile(np.asarray(system.parameter_values, dtype=float), (n_pad, 1))]
+    args = [tk, dt]
     if n_ud:
         nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(2 * substeps + 1) / (2 * substeps)
         sampled = [s for s in signals if not s.is_analytic]
@@ -116,6 +116,17 @@ def run_rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, op
         vals = np.stack([np.asarray(s(nodes.ravel())).reshape(nodes.size, s.n_outputs) for s in sampled], 1)
         ud[:n_steps] = vals.reshape(n_steps, n_ud)
         args.append(ud)
+    return args, n_pad
+
+
+def run_rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, options):
+    """Fixed-step RK4 over ``t`` in chunks of ``chunk_size`` samples; stop at the first non-finite state."""
+    substeps = integer("substeps", substeps, low=1, error=SimulationError)
+    step, n_ud = rk4_step(system, signals, int(substeps))
+    n_steps = t.size - 1
+    chunk = max(1, min(int(chunk_size), n_steps))
+    (tk, dt, *ud), n_pad = step_inputs(t, signals, int(substeps), n_ud, chunk)
+    args = [tk, dt, np.tile(np.asarray(system.parameter_values, dtype=float), (n_pad, 1)), *ud]
     states = np.empty((n_pad + 1, system.n_states))
     states[0] = x0
     buf, trigger = chunk_function(step, chunk, jit, n_steps * int(substeps)).buffer()
@@ -134,3 +145,73 @@ def run_rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, op
                 return states[:t.size], float(t[row]), "the state became non-finite (NaN/inf)"
             bar.update(min(chunk, n_steps - k0))
     return states[:t.size], None, ""
+
+
+def _batch_chunk(step: ca.Function, n_draws: int, chunk: int, jit, n_work: int) -> ca.Function:
+    """``chunk`` RK4 steps of ``n_draws`` parameter vectors at once: ``(X (nx, D), t, dt, P (np, D)[, ud])``.
+
+    The step is mapped over the draws (inputs of the original size, the time and the input, are shared),
+    then accumulated over the chunk; the parameters enter once and are repeated inside the compiled code.
+    """
+    lazy = jit == "auto" and n_work < JIT_MIN_STEPS
+    key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "rk4_batch", n_draws, chunk)
+    if jit is not False:
+        cached = jit_lookup(key)
+        if cached is not None:
+            return cached
+    shared = [1, 2] + ([4] if step.n_in() > 4 else [])  # time, step and input: the same for every draw
+    mapped = step.map("rk4_draws", "serial", n_draws, shared, [])
+    acc = mapped.mapaccum("rk4_batch_steps", chunk)
+    args = [ca.MX.sym("x", step.size1_in(0), n_draws), ca.MX.sym("t", 1, chunk), ca.MX.sym("dt", 1, chunk),
+            ca.MX.sym("p", step.size1_in(3), n_draws)]
+    call = args[:3] + [ca.repmat(args[3], 1, chunk)]
+    if step.n_in() > 4:
+        args.append(ca.MX.sym("ud", step.size1_in(4), chunk))
+        call.append(args[4])
+    wrapper = ca.Function("rk4_batch", args, [acc(*call)], ["x", "t", "dt", "p", "ud"][:len(args)], ["x_next"])
+    fn, _ = jit_wrap(wrapper, "rk4_batch", jit, SimulationError, only_cached=lazy, key=key)
+    return fn
+
+
+def run_rk4_batch(system: OdeSystem, t, signals, x0, parameters, *, substeps: int = 1, chunk_size: int = 4096,
+                  jit="auto") -> tuple[np.ndarray, np.ndarray]:
+    """RK4 of ``system`` for every row of ``parameters`` in one compiled call per chunk.
+
+    Parameters
+    ----------
+    system : OdeSystem
+    t : ndarray, shape (n_samples,)
+    signals : list of Signal
+    x0 : ndarray, shape (n_states,)
+        The initial state, shared by every draw.
+    parameters : ndarray, shape (n_draws, n_parameters)
+
+    Returns
+    -------
+    states : ndarray, shape (n_samples, n_draws, n_states)
+    finite : ndarray of bool, shape (n_draws,)
+        Whether each draw's simulation stayed finite (a diverged draw holds NaN/inf from where it blew up).
+    """
+    P = np.ascontiguousarray(np.atleast_2d(parameters), dtype=float)
+    D = P.shape[0]
+    step, n_ud = rk4_step(system, signals, int(substeps))
+    n_steps = t.size - 1
+    chunk = max(1, min(int(chunk_size) // max(1, D // 8), n_steps))
+    inputs, n_pad = step_inputs(t, signals, int(substeps), n_ud, chunk)
+    fn = _batch_chunk(step, D, chunk, jit, n_steps * int(substeps) * D)
+    buf, trigger = fn.buffer()
+    states = np.empty((n_pad + 1, D, system.n_states))
+    states[0] = x0
+    buf.set_arg(3, memoryview(P))  # CasADi's column-major (np, D) is the C-ordered (D, np)
+    with Progress(f"simulate {system.name} x {D} draws (rk4)", total=n_steps, unit="steps") as bar:
+        for k0 in range(0, n_pad, chunk):
+            buf.set_arg(0, memoryview(states[k0]))
+            buf.set_arg(1, memoryview(inputs[0][k0:k0 + chunk]))
+            buf.set_arg(2, memoryview(inputs[1][k0:k0 + chunk]))
+            if n_ud:
+                buf.set_arg(4, memoryview(inputs[2][k0:k0 + chunk]))
+            buf.set_res(0, memoryview(states[k0 + 1:k0 + chunk + 1]))
+            trigger()
+            bar.update(min(chunk, n_steps - k0))
+    out = states[:t.size]
+    return out, np.isfinite(out).all(axis=(0, 2))

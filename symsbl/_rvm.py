@@ -128,6 +128,17 @@ class RVM:
     internally and every result is returned in the caller's units, so the fit is invariant to
     column scaling and order. Deterministic: ties go to the lowest column index.
 
+    The estimator keeps scikit-learn's contract and tags (scikit-learn is not a dependency), so
+    it serves as pysindy's optimizer through pysindy's wrapper for scikit-learn regressors,
+    keeping pysindy's derivatives and libraries::
+
+        model = pysindy.SINDy(optimizer=pysindy.WrappedOptimizer(symsbl.RVM(), unbias=False))
+
+    ``unbias=False`` keeps the posterior mean; pysindy's default unbias step refits least squares
+    on the support without column scaling. The evidence assumes independent rows: point finite
+    differences and symsbl's non-overlapping weak form satisfy it, smoothed differences and
+    overlapping weak-form subdomains correlate neighbouring rows and can admit extra terms.
+
     References
     ----------
     M. E. Tipping, JMLR 1 (2001) 211-244; M. E. Tipping and A. C. Faul, AISTATS 2003;
@@ -190,6 +201,15 @@ class RVM:
             setattr(self, name, value)
         return self
 
+    def __sklearn_tags__(self):
+        """scikit-learn's estimator tags: a regressor of one target. They let scikit-learn's
+        meta-estimators (``clone``, ``MultiOutputRegressor``) and pysindy's ``WrappedOptimizer``
+        take an RVM; scikit-learn is imported only when it asks."""
+        from sklearn.utils import RegressorTags, Tags, TargetTags
+
+        return Tags(estimator_type="regressor", target_tags=TargetTags(required=True),
+                    regressor_tags=RegressorTags())
+
     def __repr__(self) -> str:
         defaults = {p.name: p.default for p in inspect.signature(type(self).__init__).parameters.values()
                     if p.kind is p.KEYWORD_ONLY}
@@ -208,29 +228,30 @@ class RVM:
         if not isinstance(stats, GramStats):
             raise ParameterError(expected("stats", "a GramStats", type(stats).__name__, raw=True))
         target = check_target(target, stats.n_targets)
-        n, M = float(stats.n_samples), stats.n_terms
+        scale = _column_scale(np.diag(stats.gram))
+        residual = None
+        if stats.r_factor is not None:
+            residual = _qr_residual(stats.r_factor, scale, stats.n_terms + target)
+        return self._fit(stats.gram / np.outer(scale, scale), scale, stats.dty[:, target],
+                         float(stats.yty[target]), stats.y_sum[target], float(stats.n_samples), residual)
+
+    def _fit(self, gram, scale, dty, tt, y_sum, n, residual=None):
+        """Solve from the unit-normalised Gram (a matrix or a column source) and the moments."""
+        M = len(dty)
         if M < 1:
             raise DataError(expected("stats", "at least one dictionary column", "none", raw=True))
         if n < 2:
             raise DataError(expected("stats", "at least 2 samples", f"n_samples = {n:g}", raw=True))
         options = self._validated_options(n, M)
-        scale = np.sqrt(np.diag(stats.gram).copy())
-        scale[~(scale > 0)] = 1.0
-        gram = stats.gram / np.outer(scale, scale)
-        b = stats.dty[:, target] / scale
-        tt = float(stats.yty[target])
-        mean = stats.y_sum[target] / n
+        mean = y_sum / n
         var_t = max(tt / n - mean**2, 0.0)
         if not var_t > 1e-14 * tt / n:
             var_t = tt / n  # constant target: measure it against its mean square
         if not var_t > 0:
             raise DataError(expected("y", "a target that is not identically zero", "all zeros",
                                      "there is nothing to fit", raw=True))
-        residual = None
-        if stats.r_factor is not None:
-            residual = _qr_residual(stats.r_factor, scale, M + target)
         sol = solve(
-            gram, b, tt, n, var_t,
+            gram, dty / scale, tt, n, var_t,
             beta_fixed=None if self.noise_var is None else 1.0 / options["noise_var"],
             beta_max=np.inf if self.noise_floor == 0 else 1.0 / (self.noise_floor * var_t),
             free=options["free"], prune=options["prune"], max_iter=self.max_iter, tol=self.tol,
@@ -291,6 +312,13 @@ def _same(a, b) -> bool:
         return bool(a == b) and type(a) is type(b)
     except (TypeError, ValueError):
         return a is b
+
+
+def _column_scale(d2):
+    """Column norms from their squares, 1 for zero (or non-finite) columns."""
+    scale = np.sqrt(np.asarray(d2, dtype=float).copy())
+    scale[~(scale > 0)] = 1.0
+    return scale
 
 
 def _qr_residual(r_factor, scale, column):

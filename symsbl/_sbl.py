@@ -6,6 +6,10 @@ convergence test of Tipping's SparseBayes v2, written entirely in terms of the s
 statistics ``G = D^T D`` (columns scaled to unit norm), ``b = D^T t``, ``t^T t`` and ``N``.
 After one O(N M^2) pass to build ``G`` every iteration costs O(M m + m^2), independent of N.
 
+The solver reads ``G`` through a column source (:class:`DenseGram` for a matrix held in full):
+its diagonal and the columns of the terms that enter, nothing else (the factors ``S``, ``Q`` of
+every column follow from those), so columns may also be computed on demand from the design.
+
 One addition to SparseBayes: an optional penalty of ``prune`` nats per non-free term, i.e. the
 objective is ``L(alpha, beta) - prune * m``. Adding a term must gain more than ``prune`` nats of
 log evidence and a kept term is deleted as soon as deleting it costs less than ``prune`` nats.
@@ -27,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Solution", "posterior", "solve"]
+__all__ = ["DenseGram", "Solution", "posterior", "solve"]
 
 _ZERO_FACTOR = 1e-12  # theta = q^2 - s below this counts as "not relevant" (SparseBayes)
 _ALIGN_MAX = 1.0 - 1e-3  # refuse a column this aligned with an active one (SparseBayes)
@@ -39,6 +43,21 @@ _MIN_DELTA_LOG_BETA = 1e-6
 
 _REESTIMATE, _ADD, _DELETE = 0, 1, 2
 _ACTION_NAMES = {_REESTIMATE: "re-estimate", _ADD: "add", _DELETE: "delete"}
+
+
+class DenseGram:
+    """Column source over a Gram matrix held in full: ``diag``, shape (n_terms,), and
+    ``columns(idx, priority)`` returning ``G[:, idx]``. ``priority`` (a score per column, higher
+    first) names the columns likely to be asked for next, for sources that compute columns in
+    batches; this one ignores it."""
+
+    def __init__(self, matrix):
+        self.matrix = matrix
+        self.diag = np.diag(matrix).copy()
+
+    def columns(self, idx, priority=None):
+        """``G[:, idx]``, shape (n_terms, len(idx))."""
+        return self.matrix[:, idx]
 
 
 @dataclass(frozen=True)
@@ -98,22 +117,24 @@ def posterior(gram_uu, b_u, alpha, beta):
 
 
 class _State:
-    """Active set, posterior and the factors S, Q of every column (Tipping & Faul Appendix A)."""
+    """Active set, posterior and the factors S, Q of every column (Tipping & Faul Appendix A).
 
-    def __init__(self, gram, b, beta, active, alpha):
-        self.gram, self.b, self.beta = gram, b, beta
+    ``cols`` holds ``G[:, active]``, the only Gram columns the algorithm reads."""
+
+    def __init__(self, gram, b, beta, active, alpha, priority=None):
+        self.gram, self.b, self.beta, self.diag = gram, b, beta, gram.diag
         self.active = list(active)
         self.alpha = np.asarray(alpha, dtype=float)
+        self.cols = np.array(gram.columns(self.active, priority), dtype=float).reshape(len(b), -1)
+        self.aligned = np.any(np.abs(self.cols) > _ALIGN_MAX, axis=1)
         self.recompute()
 
     def recompute(self):
         u = self.active
-        self.mu, self.sigma, u_inv, self.log_det = posterior(
-            self.gram[np.ix_(u, u)], self.b[u], self.alpha, self.beta
-        )
-        self.basis = self.beta * self.gram[:, u]  # (M, m) beta * D^T Phi
+        self.mu, self.sigma, u_inv, self.log_det = posterior(self.cols[u], self.b[u], self.alpha, self.beta)
+        self.basis = self.beta * self.cols  # (M, m) beta * D^T Phi
         proj = self.basis @ u_inv
-        self.S = self.beta * np.diag(self.gram) - np.sum(proj**2, axis=1)
+        self.S = self.beta * self.diag - np.sum(proj**2, axis=1)
         self.Q = self.beta * self.b - self.basis @ self.mu
 
     def factors(self):
@@ -142,10 +163,11 @@ class _State:
         self.Q += kappa * mu_k * tmp
         self.alpha[k] = new_alpha
 
-    def add(self, i, new_alpha):
+    def add(self, i, new_alpha, priority=None):
+        col = np.asarray(self.gram.columns([i], priority), dtype=float).reshape(-1)
         sig_ii = 1.0 / (new_alpha + self.S[i])
         mu_i = sig_ii * self.Q[i]
-        basis_i = self.beta * self.gram[:, i]
+        basis_i = self.beta * col
         e = self.sigma @ basis_i[self.active]
         m = len(self.active)
         sigma = np.empty((m + 1, m + 1))
@@ -158,6 +180,8 @@ class _State:
         self.S -= sig_ii * c**2
         self.Q -= mu_i * c
         self.basis = np.column_stack([self.basis, basis_i])
+        self.cols = np.column_stack([self.cols, col])
+        self.aligned |= np.abs(col) > _ALIGN_MAX
         self.active.append(i)
         self.alpha = np.append(self.alpha, new_alpha)
 
@@ -171,7 +195,8 @@ class _State:
         keep = np.arange(len(self.active)) != k
         self.sigma = self.sigma[np.ix_(keep, keep)]
         self.mu, self.alpha = self.mu[keep], self.alpha[keep]
-        self.basis = self.basis[:, keep]
+        self.basis, self.cols = self.basis[:, keep], self.cols[:, keep]
+        self.aligned = np.any(np.abs(self.cols) > _ALIGN_MAX, axis=1)
         del self.active[k]
 
 
@@ -183,16 +208,16 @@ def _choose(state, s, q, free_mask, prune):
     action = np.full(M, _ADD)
     new_alpha = np.full(M, np.inf)
     u = np.asarray(state.active)
-    a = state.alpha
 
     # Re-estimation of active bases with theta > 0.
-    relevant = theta[u] > _ZERO_FACTOR
-    a_new = np.where(relevant, s[u] ** 2 / np.where(relevant, theta[u], 1.0), np.inf)
-    delta = 1.0 / a_new - 1.0 / a
+    theta_u, s_u = theta[u], s[u]
+    relevant = theta_u > _ZERO_FACTOR
+    a_new = np.where(relevant, s_u**2 / np.where(relevant, theta_u, 1.0), np.inf)
+    delta = 1.0 / a_new - 1.0 / state.alpha
     S_u, Q_u = state.S[u], state.Q[u]
     with np.errstate(invalid="ignore", divide="ignore"):
         re_gain = 0.5 * (delta * Q_u**2 / (delta * S_u + 1.0) - np.log1p(S_u * delta))
-    re_gain = np.where(relevant, re_gain, -np.inf)
+    re_gain[~relevant] = -np.inf
     # Deletion of active, non-free bases (always possible when a penalty is set).
     deletable = ~free_mask[u] & (len(u) > 1) & (~relevant | (prune > 0))
     del_gain = np.where(deletable, prune - state.contribution(), -np.inf)
@@ -202,17 +227,14 @@ def _choose(state, s, q, free_mask, prune):
     new_alpha[u] = np.where(use_del, np.inf, a_new)
 
     # Addition of inactive bases with theta > 0, unless aligned with an active column.
-    out = np.ones(M, dtype=bool)
-    out[u] = False
-    scale = state.beta * np.diag(state.gram)
-    ok = out & (theta > _ZERO_FACTOR) & (s > _SPAN_TOL * scale)
-    aligned = np.any(np.abs(state.gram[:, u]) > _ALIGN_MAX, axis=1)
-    ok &= ~aligned
-    rho = np.where(ok, q**2 / np.where(ok, s, 1.0), 1.0)
-    gain[ok] = 0.5 * (rho[ok] - 1.0 - np.log(rho[ok])) - prune
-    new_alpha[ok] = s[ok] ** 2 / theta[ok]
+    ok = (theta > _ZERO_FACTOR) & (s > _SPAN_TOL * state.beta * state.diag) & ~state.aligned
+    ok[u] = False
+    add = np.flatnonzero(ok)
+    rho = q[add] ** 2 / s[add]
+    gain[add] = 0.5 * (rho - 1.0 - np.log(rho)) - prune
+    new_alpha[add] = s[add] ** 2 / theta[add]
 
-    deletion_pending = bool(np.any((action == _DELETE) & (gain > 0)))
+    deletion_pending = bool((gain[u][use_del] > 0).any())
     if deletion_pending:  # SparseBayes "priority deletion"
         gain = np.where(action == _DELETE, gain, -np.inf)
     return gain, action, new_alpha, deletion_pending
@@ -238,8 +260,9 @@ def solve(
 
     Parameters
     ----------
-    gram : ndarray, shape (n_terms, n_terms)
-        ``D^T D`` of unit-norm (or zero) columns.
+    gram : ndarray, shape (n_terms, n_terms), or a column source
+        ``D^T D`` of unit-norm (or zero) columns, or an object that hands out its diagonal and
+        columns (see :class:`DenseGram`); only the columns of terms that enter are read.
     b : ndarray, shape (n_terms,)
         ``D^T t``.
     tt : float
@@ -270,22 +293,21 @@ def solve(
     Solution
     """
     M = len(b)
-    diag = np.diag(gram)
+    gram = DenseGram(gram) if isinstance(gram, np.ndarray) else gram
+    diag = gram.diag
     free = list(free)
     free_mask = np.zeros(M, dtype=bool)
     free_mask[free] = True
     residual = residual or _gram_residual(gram, b, tt, n)
 
     beta = beta_fixed if beta_fixed is not None else min(1.0 / (0.01 * var_t), beta_max)
-    if free:
-        active = free
-    else:
-        norm = np.where(diag > 0, np.sqrt(diag), np.inf)
-        active = [int(np.argmax(np.abs(b) / norm))]
+    norm = np.where(diag > 0, np.sqrt(diag), np.inf)
+    active = free if free else [int(np.argmax(np.abs(b) / norm))]
     s0, q0 = beta * diag[active], beta * b[active]
     theta0 = q0**2 - s0
     alpha0 = np.where(theta0 > 0, s0**2 / np.where(theta0 > 0, theta0, 1.0), _INIT_ALPHA_MAX)
-    state = _State(gram, b, beta, active, alpha0)
+    # Columns are admitted in order of q^2 / s; before any is in, that is (b_i / ||d_i||)^2.
+    state = _State(gram, b, beta, active, alpha0, priority=np.abs(b) / norm)
 
     # Continuation: reach the plain SparseBayes optimum first, then switch the penalty on and
     # let it delete (and re-admit) terms from there. Started with the penalty on, the greedy
@@ -318,7 +340,7 @@ def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, resid
             if action[j] == _REESTIMATE:
                 state.reestimate(state.active.index(j), new_alpha[j])
             elif action[j] == _ADD:
-                state.add(j, new_alpha[j])
+                state.add(j, new_alpha[j], priority=np.where(action == _ADD, gain, -np.inf))
             else:
                 state.delete(state.active.index(j))
             if log is not None:
@@ -346,7 +368,7 @@ def _gram_residual(gram, b, tt, n):
     eps = np.finfo(float).eps
 
     def residual(active, mu):
-        g = gram[np.ix_(active, active)]
+        g = gram.columns(active)[active]
         value = tt - 2.0 * mu @ b[active] + mu @ g @ mu
         bound = eps * (len(mu) + np.sqrt(n)) * (tt + np.abs(mu) @ np.abs(g) @ np.abs(mu))
         return max(value, bound)

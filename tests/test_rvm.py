@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from symsbl import RVM, DataError, GramStats, ParameterError
-from symsbl._sbl import posterior
+from symsbl._sbl import DenseGram, posterior, solve
 
 MONOMIALS = [c for deg in range(7) for c in itertools.combinations_with_replacement(range(3), deg)]
 TRUE = {(0,): 1.0, (1,): -0.5, (0, 2): 2.0, (0, 0, 0): -1.5, (1, 2, 2): 0.8}
@@ -196,6 +196,84 @@ def test_qr_statistics_resolve_a_residual_of_1e9_of_the_signal():
     gram_only = RVM(noise_floor=0).fit(D, y)
     assert noise**2 < gram_only.noise_var_ < 1e-10 * signal.var()
     assert RVM().fit(D, y).noise_var_ == pytest.approx(1e-6 * y.var())  # the default floor
+
+
+def _rel(a, b):
+    return np.max(np.abs(a - b)) / np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("layout", ["C", "F", "strided"])
+def test_blocked_rank_k_gram_equals_the_general_product(layout):
+    """``from_arrays`` builds D^T D by symmetric rank-k updates block by block, with D^T Y from the
+    same blocks: the same numbers as a general matrix product to 1e-12, exactly symmetric."""
+    D, y, _ = monomial_problem(20_000, 0)
+    D = {"C": np.ascontiguousarray(D), "F": np.asfortranarray(D), "strided": np.asfortranarray(D)[::2]}[layout]
+    Y = np.column_stack([y[: len(D)], D[:, 3] - 2.0 * D[:, 9]])
+    stats = GramStats.from_arrays(D, Y)
+    plain_gram = np.einsum("ni,nj->ij", D, D)  # a general product, no symmetric kernel
+    assert _rel(stats.gram, plain_gram) < 1e-12
+    assert _rel(stats.dty, np.einsum("ni,nk->ik", D, Y)) < 1e-12
+    np.testing.assert_array_equal(stats.gram, stats.gram.T)
+
+
+def test_fit_gives_the_model_of_the_plain_statistics():
+    D, y, _ = monomial_problem(50_000, 3)
+    plain = GramStats(np.einsum("ni,nj->ij", D, D), np.einsum("ni,n->i", D, y)[:, None], np.array([y @ y]),
+                      np.array([y.sum()]), len(y))
+    for prune in (None, "ebic"):
+        fast, ref = RVM(prune_nats=prune).fit(D, y), RVM(prune_nats=prune).fit_stats(plain)
+        np.testing.assert_array_equal(fast.active_, ref.active_)
+        assert fast.n_iter_ == ref.n_iter_
+        assert _rel(fast.coef_, ref.coef_) < 1e-10  # relative to the largest coefficient
+        assert _rel(fast.sigma_, ref.sigma_) < 1e-9
+        # The Gram-identity residual turns 1e-16 perturbations of G into ~beta t^T t 1e-16 nats.
+        assert fast.log_evidence_ == pytest.approx(ref.log_evidence_, abs=1e-5)
+        assert fast.noise_var_ == pytest.approx(ref.noise_var_, rel=1e-9)
+
+
+class _OnDemand:
+    """A column source computing each Gram column from the design when first asked, recording which."""
+
+    def __init__(self, D):
+        self.D, self.diag, self.read = D, np.einsum("ni,ni->i", D, D), []
+
+    def columns(self, idx, priority=None):
+        self.read += [int(i) for i in idx if int(i) not in self.read]
+        return self.D.T @ self.D[:, idx]
+
+
+def test_solver_reads_only_the_gram_columns_of_terms_that_enter():
+    """The sequential algorithm needs the diagonal of G and the columns of the terms that enter,
+    nothing else: a source that computes those on demand gives the same solution."""
+    D, y, _ = monomial_problem(20_000, 1)
+    D = D / np.linalg.norm(D, axis=0)
+    G, b = D.T @ D, D.T @ y
+    args = (b, float(y @ y), float(len(y)), float(y.var()))
+    source = _OnDemand(D)
+    for prune in (0.0, 9.0):
+        ref = solve(DenseGram(G), *args, beta_max=1e6 / y.var(), prune=prune)
+        lazy = solve(source, *args, beta_max=1e6 / y.var(), prune=prune)
+        np.testing.assert_array_equal(lazy.active, ref.active)
+        assert lazy.n_iter == ref.n_iter
+        for name in ("mu", "alpha", "sigma", "q_out", "s_out"):
+            assert _rel(getattr(lazy, name), getattr(ref, name)) < 1e-9, name
+        assert lazy.log_evidence == pytest.approx(ref.log_evidence, rel=1e-12)
+    assert set(ref.active) <= set(source.read) and len(source.read) < D.shape[1] // 3
+
+
+def test_scikit_learn_takes_it_as_a_regressor():
+    """``clone`` and ``MultiOutputRegressor`` (what pysindy's ``WrappedOptimizer`` uses) accept an RVM."""
+    pytest.importorskip("sklearn", reason="scikit-learn is not installed; nothing to be compatible with")
+    from sklearn.base import clone, is_regressor
+    from sklearn.multioutput import MultiOutputRegressor
+
+    X, y = small_problem(11)
+    rvm = RVM(prune_nats=3.0)
+    assert is_regressor(rvm) and clone(rvm).get_params() == rvm.get_params()
+    both = MultiOutputRegressor(rvm).fit(X, np.column_stack([y, 2.0 * y]))
+    single = RVM(prune_nats=3.0).fit(X, y)
+    np.testing.assert_allclose(both.estimators_[1].coef_, 2.0 * single.coef_, rtol=1e-8)
+    np.testing.assert_allclose(both.predict(X)[:, 0], single.predict(X), rtol=1e-12)
 
 
 @pytest.mark.parametrize("n", [20_000, 200_000])
