@@ -54,7 +54,10 @@ def main():
     train, pulses = load("DATA_EMPS.mat"), load("DATA_EMPS_PULSES.mat")
     q, v, tau = symsbl.symbols("q v tau")
     library = symsbl.custom([tau, v, ca.sign(v), ca.SX(1)], [q, v, tau])  # the published structure
-    model = symsbl.identify(train, library)
+    # The axis runs in closed loop and its plant integrates: a free-run simulation from the measured force
+    # drifts, so the trajectory error is not the criterion here (the benchmark simulates with its controller
+    # in the loop). The published values are an inverse model fitted by equation error (IDIM-LS); so is this.
+    model = symsbl.identify(train, library, refine=False)
     print(f"identified from {train.n_samples} samples at {train.fs:.0f} Hz:")
     print(model)
 

@@ -18,6 +18,7 @@ from ._errors import (
     ExpressionError,
     LibraryError,
     MissingExtraError,
+    RefineWarning,
     ParameterError,
     SimulationError,
     SymsblError,
@@ -51,8 +52,11 @@ from ._rvm import RVM
 from ._regression import RegressionStats, regression_stats
 from ._identify import fit_stats, identify
 
+# -- output-error refinement: fit the trajectories -----------------------------------------------
+from ._refine import refine
+
 # -- the identified model --------------------------------------------------------------------
-from ._model import Equation, IdentifiedModel, TermEstimate
+from ._model import Equation, FitMethod, IdentifiedModel, TermEstimate
 
 # -- re-simulation and validation ----------------------------------------------------------
 from ._validate import Validation, nrmse, validate_model
@@ -99,7 +103,7 @@ __version__ = "0.2.0"
 __all__ = [
     # errors
     "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError",
+    "MissingExtraError", "RefineWarning",
     # symbolic terms and libraries
     "symbols", "casadi_to_sympy", "sympy_to_casadi", "Term", "Library", "polynomial", "elementwise", "inputs",
     "custom", "paper",
@@ -112,9 +116,9 @@ __all__ = [
     # derivatives
     "Differentiator", "Stencil", "PointDifference", "CentralDifference", "SavitzkyGolay", "WeakForm",
     # regression and identification
-    "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify",
+    "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify", "refine",
     # the model
-    "TermEstimate", "Equation", "IdentifiedModel",
+    "TermEstimate", "Equation", "IdentifiedModel", "FitMethod",
     # validation
     "Validation", "validate_model", "nrmse", "TruthComparison", "compare_to_truth",
     # discrepancy

@@ -26,7 +26,8 @@ import numpy as np
 from ._errors import SymsblError, expected
 
 __all__ = [
-    "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "compiler", "jit_wrap", "run_chunks",
+    "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "compiler", "jit_wrap", "jit_lookup",
+    "run_chunks",
 ]
 
 #: CasADi operations whose value or slope jumps: an expression using any of them is not smooth.
@@ -45,9 +46,10 @@ DISCONTINUOUS_OPS = frozenset(
                  "NOT", "AND", "OR")
 )
 
-_JIT_FLAGS = ["-O3", "-march=native"]
+_JIT_FLAGS = ["-O3", "-march=native", "-w"]  # -w: generated code (empty copies) warns harmlessly
 _JIT_CACHE: OrderedDict[tuple, ca.Function] = OrderedDict()
 _JIT_CACHE_SIZE = 64
+_JIT_SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
 _JIT_DIR: str | None = None
 
 
@@ -93,8 +95,16 @@ def _jit_dir() -> str:
     return _JIT_DIR + "/"
 
 
+def jit_lookup(key) -> ca.Function | None:
+    """A compiled function cached under ``key`` by :func:`jit_wrap`, or None."""
+    if key in _JIT_CACHE:
+        _JIT_CACHE.move_to_end(key)
+        return _JIT_CACHE[key]
+    return None
+
+
 def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
-             only_cached: bool = False) -> tuple[ca.Function, bool]:
+             only_cached: bool = False, key=None) -> tuple[ca.Function, bool]:
     """``fn`` compiled as one C function (an MX wrapper, JIT with gcc), or ``fn`` itself.
 
     Compiling a wrapper around a ``map`` or ``mapaccum`` produces one C loop, which removes
@@ -110,7 +120,11 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
     error : SymsblError subclass
         Raised when ``jit=True`` cannot be honoured.
     only_cached : bool
-        Return a compiled function only if one is cached already (compiling would not pay off).
+        Compile only if the same function was asked for before (compiling would not pay off for one
+        short use, and does for a structure used again: fits over many records, seeds or windows).
+    key : hashable, optional
+        The cache key (default: a hash of ``fn``'s serialised graph and ``name``); a caller that
+        knows a cheaper one (the small step the function was built from) passes it.
 
     Returns
     -------
@@ -124,11 +138,12 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
             raise error(expected("jit", "a C compiler (gcc or cc on PATH) for jit=True", "none found",
                                  "install gcc or pass jit='auto'", raw=True))
         return fn, False
-    key = (hashlib.sha1(fn.serialize().encode()).hexdigest(), name)
-    if key in _JIT_CACHE:
-        _JIT_CACHE.move_to_end(key)
-        return _JIT_CACHE[key], True
-    if only_cached:
+    key = (hashlib.sha1(fn.serialize().encode()).hexdigest(), name) if key is None else key
+    cached = jit_lookup(key)
+    if cached is not None:
+        return cached, True
+    if only_cached and key not in _JIT_SEEN:  # compiled from the second request on: a structure used again
+        _JIT_SEEN.add(key)
         return fn, False
     args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
     opts = {"jit": True, "compiler": "shell", "jit_cleanup": False,

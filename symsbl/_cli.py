@@ -125,11 +125,22 @@ def _save_figure(fig, path) -> None:
     write_atomic(path, lambda fh: fig.savefig(fh, dpi=120, format=suffix[1:]), suffix=suffix)
 
 
-def _read(args, path, states, inputs):
-    from ._io import read_trajectory
+def _read(args, path, states, inputs, *, optional=()):
+    """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing."""
+    from ._io import read_columns, read_trajectory
 
     time = None if args.time == "" else args.time
+    if optional:
+        present = read_columns(path)
+        states = [s for s in states if s in present or s not in optional]
     return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+
+
+def _unmeasured_allowed(states, kinematics) -> tuple:
+    """States a record may lack: the velocities of declared kinematic pairs."""
+    from ._kinematics import parse_kinematics
+
+    return tuple(v for _, v in parse_kinematics(kinematics, states)) if kinematics else ()
 
 
 def _cmd_identify(args) -> int:
@@ -138,10 +149,13 @@ def _cmd_identify(args) -> int:
 
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.library if str(args.library).endswith(".py") else None])
-    traj = _read(args, args.data, states, inputs)
+    traj = _read(args, args.data, states, inputs, optional=_unmeasured_allowed(states, args.kinematics))
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
-    model = identify(traj, library, derivative=args.derivative)
-    print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms:")
+    model = identify(traj, library, derivative=args.derivative, states=states, kinematics=args.kinematics or None,
+                     refine=not args.no_refine)
+    how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
+    print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
+          f"coefficients by {how}:")
     print(model)
     if args.json:
         model.save(args.json)
@@ -155,7 +169,8 @@ def _cmd_validate(args) -> int:
 
     _outputs(args, [args.model, args.data])
     model = IdentifiedModel.load(args.model)
-    traj = _read(args, args.data, model.state_names, model.input_names)
+    velocities = tuple(v for _, v in model.kinematics)
+    traj = _read(args, args.data, model.state_names, model.input_names, optional=velocities)
     try:
         result = validate_model(model, traj, n_band=args.band)
     except SymsblError as err:  # name the option, not the keyword behind it
@@ -200,7 +215,7 @@ def _cmd_demo(args) -> int:
     if args.seed < 0:
         raise LibraryError(expected("--seed", "an integer >= 0", args.seed))
     _outputs(args, [])
-    results = run_demo(seed=args.seed, quick=args.quick)
+    results = run_demo(seed=args.seed, quick=args.quick, refine=not args.no_refine)
     if args.plots:
         for path in write_figures(results, args.plots, seed=args.seed):
             print(f"figure written to {path}")
@@ -228,6 +243,11 @@ def _add_identify(sub, common) -> None:
     p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
     p.add_argument("--derivative", default="weak", choices=list(DIFFERENTIATORS),
                    help="how targets are built (default: weak)")
+    p.add_argument("--kinematics", default="", metavar="X:V[,...]",
+                   help="position:velocity pairs with x' = v exactly (fixed, not identified); the velocity may be "
+                        "absent from DATA (unmeasured), e.g. --kinematics y:v")
+    p.add_argument("--no-refine", action="store_true",
+                   help="stop at the equation-error fit (default: refine every coefficient by output error)")
     p.add_argument("--json", help="write the identified model as JSON to this file")
     p.set_defaults(func=_cmd_identify)
 
@@ -276,6 +296,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", parents=[common], help="the paper's five systems end to end")
     p.add_argument("--seed", type=int, default=0, help="noise seed >= 0 (default: 0)")
     p.add_argument("--quick", action="store_true", help="shorter records (for a fast check)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="the equation-error models only (default: refined by output error, both shown)")
     p.add_argument("--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR "
                    "(needs matplotlib)")
     p.set_defaults(func=_cmd_demo)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 __all__ = [
     "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError", "expected", "describe",
+    "MissingExtraError", "RefineWarning", "expected", "describe",
 ]
 
 
@@ -40,6 +40,10 @@ class ParameterError(SymsblError):
 
 class MissingExtraError(SymsblError, ImportError):
     """An optional dependency is not installed; the message names how to install it."""
+
+
+class RefineWarning(RuntimeWarning):
+    """The output-error refinement could not run on a record; the equation-error model is returned."""
 
 
 def describe(value, limit: int = 60) -> str:

@@ -13,6 +13,7 @@ and the log evidence. It renders as
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,17 @@ from ._symbolic import casadi_to_sympy
 if TYPE_CHECKING:
     from ._ode import OdeSystem
 
-__all__ = ["TermEstimate", "Equation", "IdentifiedModel"]
+__all__ = ["TermEstimate", "Equation", "IdentifiedModel", "FitMethod"]
+
+
+class FitMethod(str, enum.Enum):
+    """How a model's coefficients were estimated (its value is the ``fit`` field of the model file)."""
+
+    EQUATION_ERROR = "equation-error"
+    OUTPUT_ERROR = "output-error"
+
+    def __str__(self) -> str:
+        return self.value
 
 @dataclass(frozen=True)
 class TermEstimate:
@@ -48,6 +59,9 @@ class TermEstimate:
     alternatives : tuple of str
         Candidates the data cannot tell apart from this term (same fit within the evidence
         tolerance); the simplest of the group is the one kept.
+    fixed : bool
+        The coefficient is a convention, not an estimate (the scale of a latent state: see
+        :attr:`IdentifiedModel.latent_names`).
     """
 
     expr: ca.SX
@@ -56,6 +70,7 @@ class TermEstimate:
     alpha: float = math.nan
     evidence: float = math.nan
     alternatives: tuple[str, ...] = ()
+    fixed: bool = False
 
     @property
     def sympy(self) -> sp.Expr:
@@ -90,7 +105,11 @@ class Equation:
     log_evidence : float
         Log marginal likelihood of the fitted equation (nats).
     n_rows : int
-        Number of regression rows the fit used.
+        Number of regression rows (equation error) or measured samples (output error) behind the fit.
+    fixed : bool
+        The equation is given, not estimated: a kinematic relation ``x' = v`` (coefficients exact).
+    runners_up : tuple of str
+        The candidates next in line by equation-error evidence (what an output-error refinement tries).
     """
 
     lhs: str
@@ -99,9 +118,17 @@ class Equation:
     noise_var: float
     log_evidence: float
     n_rows: int = 0
+    fixed: bool = False
+    runners_up: tuple = field(default=(), compare=False)
 
     @classmethod
-    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None) -> "Equation":
+    def kinematic(cls, lhs: str, velocity) -> "Equation":
+        """The fixed equation ``lhs' = velocity`` of a position and its velocity (a casadi.SX symbol)."""
+        term = TermEstimate(expr=velocity, coef=1.0, std=0.0)
+        return cls(lhs, (term,), np.zeros((1, 1)), math.nan, math.nan, 0, fixed=True)
+
+    @classmethod
+    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=()) -> "Equation":
         """The equation of a fitted :class:`~symsbl.RVM`: one term per kept column, in ``fit.active_`` order.
 
         Parameters
@@ -115,6 +142,8 @@ class Equation:
             Regression rows behind the fit.
         alternatives : sequence of tuple of str, optional
             Per kept term, the candidates the data cannot tell apart from it.
+        runners_up : sequence of str
+            The candidates next in line.
         """
         active = [int(i) for i in fit.active_]
         alternatives = alternatives or [()] * len(active)
@@ -124,7 +153,8 @@ class Equation:
                          alternatives=tuple(alt))
             for pos, (i, e, alt) in enumerate(zip(active, exprs, alternatives))
         )
-        return cls(lhs, terms, np.array(fit.sigma_), float(fit.noise_var_), float(fit.log_evidence_), int(n_rows))
+        return cls(lhs, terms, np.array(fit.sigma_), float(fit.noise_var_), float(fit.log_evidence_), int(n_rows),
+                   runners_up=tuple(runners_up))
 
     @property
     def coefs(self) -> np.ndarray:
@@ -153,11 +183,16 @@ class Equation:
         return sp.Add(*[sp.Float(t.coef) * t.sympy for t in self.terms])
 
     def __str__(self) -> str:
+        if self.fixed:
+            return f"{self.lhs}' = " + " + ".join(pretty(t.name) for t in self.terms) + "  (kinematics, fixed)"
         parts = []
         for t in self.terms:
-            text = format_uncertain(t.coef, t.std, signed=bool(parts))
+            text = format_uncertain(t.coef, t.std, signed=bool(parts)) if not t.fixed else (
+                f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")
             label = pretty(t.name)
             body = text if label == "1" else f"{text} {label}"
+            if t.fixed:
+                body += " (scale convention)"
             if t.alternatives:
                 body += " (indistinguishable here from " + ", ".join(pretty(a) for a in t.alternatives) + ")"
             parts.append(body)
@@ -176,6 +211,16 @@ class IdentifiedModel:
         One per state, same order as ``states``.
     metadata : dict
         Free-form provenance (derivative strategy, library size, sample rate ...).
+    fit : FitMethod
+        Equation error (regression of the state derivatives) or output error (simulation error of the
+        measured states, :func:`symsbl.refine`).
+    kinematics : tuple of (str, str)
+        Declared position-velocity pairs ``(x, v)``: ``x' = v`` holds exactly (a fixed equation).
+    measured : tuple of str or None
+        The states measured in the data the model was fitted on (None: all of them).
+    joint_covariance : ndarray or None
+        Posterior covariance of all coefficients in :meth:`parameters` order when the equations
+        were estimated together (output error couples them); None for independent equations.
 
     Examples
     --------
@@ -188,7 +233,7 @@ class IdentifiedModel:
     >>> model = symsbl.identify(train, library)
     >>> model.to_sympy()[1].lhs
     Derivative(x2(t), t)
-    >>> "dot{x_{2}} &= 0.999 F" in model.to_latex(digits=3)
+    >>> "dot{x_{2}} &= 1.0 F" in model.to_latex(digits=3)
     True
 
     It saves to JSON and comes back with the same equations:
@@ -206,6 +251,16 @@ class IdentifiedModel:
     inputs: tuple[ca.SX, ...]
     equations: tuple[Equation, ...]
     metadata: dict = field(default_factory=dict, compare=False)
+    fit: FitMethod = FitMethod.EQUATION_ERROR
+    kinematics: tuple = ()
+    measured: tuple | None = None
+    joint_covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "fit", FitMethod(self.fit))
+        object.__setattr__(self, "kinematics", tuple(tuple(p) for p in self.kinematics))
+        if self.measured is not None:
+            object.__setattr__(self, "measured", tuple(self.measured))
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -225,7 +280,26 @@ class IdentifiedModel:
         raise ParameterError(expected("lhs", f"one of the states {list(self.state_names)}", lhs))
 
     def __str__(self) -> str:
-        return "\n".join(str(eq) for eq in self.equations)
+        lines = [str(eq) for eq in self.equations]
+        for name in self.latent_names:
+            lines.append(f"{name}: latent (not measured); {self.convention(name)}")
+        return "\n".join(lines)
+
+    @property
+    def latent_names(self) -> tuple[str, ...]:
+        """States that were not measured and are not the velocity of a measured position: their
+        equations were found, and their trajectories simulated, with no record of them."""
+        velocities = {v for _, v in self.kinematics}
+        return tuple(n for n in self.state_names if n not in self.measured_names and n not in velocities)
+
+    def convention(self, name: str) -> str:
+        """How the scale (and sign) of the latent state ``name`` is fixed: ``z`` and ``s z`` give the same
+        measured output, so the coefficient of ``z`` in the first equation that uses it is held fixed."""
+        for eq in self.equations:
+            for t in eq.terms:
+                if t.fixed and t.name == name:
+                    return f"scaled so that its coefficient in {eq.lhs}' is {t.coef:g}"
+        return "its scale is not fixed by a term of the model"
 
     # -- symbolic forms -------------------------------------------------------------------
     def to_sympy(self) -> list[sp.Eq]:
@@ -257,10 +331,18 @@ class IdentifiedModel:
                 values.append(t.coef)
         return syms, np.array(values)
 
+    @property
+    def measured_names(self) -> tuple[str, ...]:
+        """The states measured when the model was fitted (all of them unless :attr:`measured` says otherwise)."""
+        return self.state_names if self.measured is None else self.measured
+
     def covariance(self) -> np.ndarray:
-        """Block-diagonal posterior covariance of all coefficients, in ``parameters`` order."""
+        """Posterior covariance of all coefficients, in ``parameters`` order: the joint one of an
+        output-error fit, else block-diagonal (one block per equation)."""
         from scipy.linalg import block_diag
 
+        if self.joint_covariance is not None:
+            return np.asarray(self.joint_covariance)
         blocks = [np.atleast_2d(eq.covariance) for eq in self.equations if eq.terms]
         return block_diag(*blocks) if blocks else np.zeros((0, 0))
 

@@ -11,10 +11,13 @@ copy: an edited ``rhs`` with unchanged ``terms`` is reported, not silently ignor
 Schema (version 2; version 1 files, without ``fit``, are read unchanged)::
 
     {"format": "symsbl-model", "version": 2, "states": [...], "inputs": [...],
-     "fit": "equation-error" | "output-error",
-     "equations": [{"lhs": str, "rhs": str,
+     "fit": "equation-error" | "output-error", "kinematics": {"x": "v", ...}, "measured": [...],
+     "latent": {"z": "how its scale is fixed", ...} (written for people; derived on reading),
+     "covariance": [[...]] (output error: the joint covariance of all coefficients),
+     "equations": [{"lhs": str, "rhs": str, "fixed": bool (a kinematic equation),
                     "terms": [{"term": str, "coef": float, "std": float, "alpha": float|null,
-                               "evidence": float|null, "alternatives": [str, ...]}, ...],
+                               "evidence": float|null, "alternatives": [str, ...],
+                               "fixed": true (only for a coefficient fixed by convention)}, ...],
                     "noise_std": float, "log_evidence": float|null, "n_rows": int,
                     "covariance": [[float, ...], ...]}, ...],
      "metadata": {...}}
@@ -69,23 +72,31 @@ def model_to_json(model) -> dict[str, Any]:
         equations.append({
             "lhs": eq.lhs,
             "rhs": str(eq.rhs_sympy()),
+            "fixed": eq.fixed,
             "terms": [{"term": t.name, "coef": t.coef, "std": t.std, "alpha": _finite_or_none(t.alpha),
-                       "evidence": _finite_or_none(t.evidence), "alternatives": list(t.alternatives)}
+                       "evidence": _finite_or_none(t.evidence), "alternatives": list(t.alternatives),
+                       **({"fixed": True} if t.fixed else {})}
                       for t in eq.terms],
-            "noise_std": math.sqrt(eq.noise_var),
+            "noise_std": _finite_or_none(math.sqrt(eq.noise_var)) if np.isfinite(eq.noise_var) else None,
             "log_evidence": _finite_or_none(eq.log_evidence),
             "n_rows": eq.n_rows,
             "covariance": np.asarray(eq.covariance).tolist(),
         })
-    return {
+    doc = {
         "format": "symsbl-model",
         "version": JSON_VERSION,
         "states": list(model.state_names),
         "inputs": list(model.input_names),
-        "fit": model.metadata.get("fit", "equation-error"),
+        "fit": model.fit.value,
+        "kinematics": {x: v for x, v in model.kinematics},
+        "measured": list(model.measured_names),
+        "latent": {name: model.convention(name) for name in model.latent_names},
         "equations": equations,
         "metadata": _jsonable(model.metadata),
     }
+    if model.joint_covariance is not None:
+        doc["covariance"] = np.asarray(model.joint_covariance).tolist()
+    return doc
 
 
 def save_model(model, path) -> None:
@@ -164,10 +175,11 @@ def _term(raw, where: str, cas: dict, term_cls):
     if alpha is not None and alpha <= 0:
         raise DataError(expected(f"{where}.alpha", "a finite number > 0 or null", alpha))
     evidence = _field(raw, "evidence", where, "number", default=None, what="a finite number or null")
+    fixed = _field(raw, "fixed", where, bool, default=False, what="true or false")
     return term_cls(
         expr=expr, coef=_field(raw, "coef", where, "number"), std=math.nan if std is None else std,
         alpha=math.nan if alpha is None else alpha, evidence=math.nan if evidence is None else evidence,
-        alternatives=tuple(alternatives),
+        alternatives=tuple(alternatives), fixed=fixed,
     )
 
 
@@ -215,10 +227,63 @@ def _check_rhs(raw: dict, where: str, cas: dict, terms) -> None:
                                      "edit 'terms' (the source of truth) and delete or regenerate 'rhs'", raw=True))
 
 
-def model_from_json(cls, doc):
-    """Rebuild ``cls`` (IdentifiedModel) from a JSON document (dict or string), read as data."""
+def _equation(raw, where: str, states, cas: dict, seen: list):
     from ._model import Equation, TermEstimate
 
+    if not isinstance(raw, dict):
+        raise DataError(expected(where, "a JSON object", type(raw).__name__, raw=True))
+    lhs = _field(raw, "lhs", where, str)
+    if lhs not in states or lhs in seen:
+        raise DataError(expected(f"{where}.lhs", f"one equation per state {list(states)}", lhs))
+    seen.append(lhs)
+    raw_terms = _field(raw, "terms", where, list)
+    terms = [_term(rt, f"{where}.terms[{i}]", cas, TermEstimate) for i, rt in enumerate(raw_terms)]
+    _check_rhs(raw, where, cas, terms)
+    noise_std = _field(raw, "noise_std", where, "number", default=None, what="a finite number >= 0")
+    if noise_std is not None and noise_std < 0:
+        raise DataError(expected(f"{where}.noise_std", "a finite number >= 0", noise_std))
+    log_evidence = _field(raw, "log_evidence", where, "number", default=None, what="a finite number or null")
+    n_rows = raw.get("n_rows", 0)
+    if isinstance(n_rows, bool) or not isinstance(n_rows, int) or n_rows < 0:
+        raise DataError(expected(f"{where}.n_rows", "an integer >= 0", n_rows))
+    fixed = _field(raw, "fixed", where, bool, default=False, what="true or false")
+    return Equation(lhs=lhs, terms=tuple(terms), covariance=_covariance(raw, where, terms),
+                    noise_var=math.nan if noise_std is None else noise_std**2,
+                    log_evidence=math.nan if log_evidence is None else log_evidence, n_rows=n_rows, fixed=fixed)
+
+
+def _kinematics(doc, states) -> tuple:
+    pairs = _field(doc, "kinematics", _WHERE, dict, default={}, what="an object {position: velocity}")
+    for x, v in pairs.items():
+        if x not in states or not isinstance(v, str) or v not in states or v == x:
+            raise DataError(expected(f"{_WHERE}.kinematics", f"position: velocity pairs of the states {list(states)}",
+                                     {x: v}))
+    return tuple(pairs.items())
+
+
+def _measured(doc, states) -> tuple | None:
+    measured = _field(doc, "measured", _WHERE, list, default=None, what="a list of state names")
+    if measured is not None and (not measured or any(m not in states for m in measured)):
+        raise DataError(expected(f"{_WHERE}.measured", f"names among the states {list(states)}", measured))
+    return None if measured is None else tuple(measured)
+
+
+def _joint_covariance(doc, n: int) -> np.ndarray | None:
+    if "covariance" not in doc:
+        return None
+    try:
+        arr = np.array(doc["covariance"], dtype=float)
+    except (TypeError, ValueError):
+        raise DataError(expected(f"{_WHERE}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries",
+                                 raw=True)) from None
+    if arr.shape != (n, n) or not np.all(np.isfinite(arr)) or not np.allclose(arr, arr.T, rtol=1e-6, atol=0):
+        raise DataError(expected(f"{_WHERE}.covariance", f"a finite symmetric {n} x {n} array (one row per "
+                                 "coefficient)", f"shape {arr.shape}", raw=True))
+    return arr
+
+
+def model_from_json(cls, doc):
+    """Rebuild ``cls`` (IdentifiedModel) from a JSON document (dict or string), read as data."""
     if isinstance(doc, str):
         try:
             doc = json.loads(doc)
@@ -227,30 +292,8 @@ def model_from_json(cls, doc):
     states, inputs, raw_equations = _header(doc)
     syms = tuple(ca.SX.sym(n) for n in states + inputs)
     cas = {s.name(): s for s in syms}
-    equations, seen = [], []
-    for k, raw in enumerate(raw_equations):
-        where = f"{_WHERE}.equations[{k}]"
-        if not isinstance(raw, dict):
-            raise DataError(expected(where, "a JSON object", type(raw).__name__, raw=True))
-        lhs = _field(raw, "lhs", where, str)
-        if lhs not in states or lhs in seen:
-            raise DataError(expected(f"{where}.lhs", f"one equation per state {list(states)}", lhs))
-        seen.append(lhs)
-        raw_terms = _field(raw, "terms", where, list)
-        terms = [_term(rt, f"{where}.terms[{i}]", cas, TermEstimate) for i, rt in enumerate(raw_terms)]
-        _check_rhs(raw, where, cas, terms)
-        noise_std = _field(raw, "noise_std", where, "number", default=None, what="a finite number >= 0")
-        if noise_std is not None and noise_std < 0:
-            raise DataError(expected(f"{where}.noise_std", "a finite number >= 0", noise_std))
-        log_evidence = _field(raw, "log_evidence", where, "number", default=None, what="a finite number or null")
-        n_rows = raw.get("n_rows", 0)
-        if isinstance(n_rows, bool) or not isinstance(n_rows, int) or n_rows < 0:
-            raise DataError(expected(f"{where}.n_rows", "an integer >= 0", n_rows))
-        equations.append(Equation(
-            lhs=lhs, terms=tuple(terms), covariance=_covariance(raw, where, terms),
-            noise_var=math.nan if noise_std is None else noise_std**2,
-            log_evidence=math.nan if log_evidence is None else log_evidence, n_rows=n_rows,
-        ))
+    seen: list = []
+    equations = [_equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen) for k, raw in enumerate(raw_equations)]
     missing = [s for s in states if s not in seen]
     if missing:
         raise DataError(expected(f"{_WHERE}.equations", f"one equation per state {list(states)}",
@@ -260,8 +303,10 @@ def model_from_json(cls, doc):
     metadata = doc.get("metadata", {})
     if not isinstance(metadata, dict):
         raise DataError(expected(f"{_WHERE}.metadata", "a JSON object", type(metadata).__name__, raw=True))
-    metadata = dict(metadata, fit=doc.get("fit", metadata.get("fit", "equation-error")))
-    return cls(states=syms[:len(states)], inputs=syms[len(states):], equations=tuple(equations), metadata=metadata)
+    n_coefs = sum(len(eq.terms) for eq in equations)
+    return cls(states=syms[:len(states)], inputs=syms[len(states):], equations=tuple(equations), metadata=metadata,
+               fit=doc.get("fit", "equation-error"), kinematics=_kinematics(doc, states),
+               measured=_measured(doc, states), joint_covariance=_joint_covariance(doc, n_coefs))
 
 
 def load_model(cls, path):

@@ -116,6 +116,23 @@ class SupportSearch:
         order = np.argsort(-np.abs(scores) / self.norms, kind="stable")
         return [int(i) for i in order if i not in exclude][: self.k]
 
+    def runners_up(self, kept, fit, k: int = 2) -> list[int]:
+        """Up to ``k`` candidates whose addition to the fit on ``kept`` would raise its log evidence by more
+        than a nat (before the per-term penalty), best first: the relevance vector machine's exact one-term
+        gain ``1/2 (rho - 1 - log rho)`` with ``rho = q^2 / s`` (Tipping and Faul 2003)."""
+        G, b = self.stats.gram, self.stats.dty[:, self.target]
+        beta = 1.0 / fit.noise_var_
+        cross = G[:, kept]  # (M, m)
+        sigma = np.asarray(fit.sigma_)
+        s = beta * np.diag(G) - beta**2 * np.einsum("im,mn,in->i", cross, sigma, cross)
+        q = beta * (b - G @ self.coefficients(kept, fit))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(s > 0, q**2 / np.where(s > 0, s, 1.0), 0.0)
+            gain = np.where(rho > 1.0, 0.5 * (rho - 1.0 - np.log(np.where(rho > 1.0, rho, 1.0))), 0.0)
+        gain[list(kept)] = 0.0
+        order = np.argsort(-gain, kind="stable")
+        return [int(i) for i in order[:k] if gain[i] > 1.0]
+
     def collinear(self, j, exclude):
         G = self.stats.gram
         cos = np.abs(G[j]) / (self.norms * self.norms[j])

@@ -23,7 +23,7 @@ from ._rk4 import first_nonfinite_row, run_rk4
 from ._signals import FreeDecay, Sampled, Signal
 from ._trajectory import Trajectory, validate
 
-__all__ = ["simulate", "time_grid", "METHODS"]
+__all__ = ["simulate", "time_grid", "resolve_inputs", "METHODS"]
 
 
 def time_grid(duration: float, fs: float, t0: float = 0.0) -> np.ndarray:
@@ -45,7 +45,7 @@ def time_grid(duration: float, fs: float, t0: float = 0.0) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- inputs
 
 
-def _resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
+def resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
     """Turn ``inputs`` (None, a Signal, a sequence of Signals or an array on ``t``) into a list of Signals."""
     if inputs is None:
         signals = [FreeDecay(system.n_inputs)] if system.n_inputs else []
@@ -200,7 +200,7 @@ def simulate(
     if x0.shape != (system.n_states,) or not np.all(np.isfinite(x0)):
         raise SimulationError(expected("x0", f"{system.n_states} finite values (states {list(system.state_names)})",
                                        x0))
-    signals = _resolve_inputs(system, t, inputs)
+    signals = resolve_inputs(system, t, inputs)
     name = method if method != "auto" else ("cvodes" if system.is_continuous else "rk4")
     states, t_fail, reason = METHODS[name](
         system, t, signals, x0, rtol=rtol, atol=atol, substeps=substeps, chunk_size=chunk_size, jit=jit,

@@ -246,6 +246,16 @@ class Trajectory:
             return self.t
         raise DataError(expected("column", f"one of {['t', *self.state_names, *self.input_names]}", name))
 
+    def with_states(self, names: Sequence[str]) -> Trajectory:
+        """The record with the states ``names`` (a subset, in that order); the inputs unchanged."""
+        missing = [n for n in names if n not in self.state_names]
+        if missing or not names:
+            raise DataError(expected("names", f"states among {list(self.state_names)}", list(names)))
+        if tuple(names) == self.state_names:
+            return self
+        X = np.column_stack([self.column(n) for n in names])
+        return Trajectory(self.t, X, self.inputs, tuple(names), self.input_names)
+
     def to_dict(self) -> dict[str, np.ndarray]:
         """Return ``{"t": t, state_name: column, ..., input_name: column, ...}`` (insertion-ordered)."""
         out = {"t": self.t}

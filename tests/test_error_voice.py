@@ -15,7 +15,9 @@ import symsbl
 from symsbl import _errors
 
 PACKAGE = Path(symsbl.__file__).parent
-ERROR_CLASSES = {name for name, obj in vars(_errors).items() if inspect.isclass(obj) and issubclass(obj, Exception)}
+ERROR_CLASSES = {name for name, obj in vars(_errors).items()
+                 if inspect.isclass(obj) and issubclass(obj, Exception) and not issubclass(obj, Warning)}
+WARNING_CLASSES = {name for name, obj in vars(_errors).items() if inspect.isclass(obj) and issubclass(obj, Warning)}
 #: Names that hold one of those classes at run time (a parameter ``error`` of the shared checks, ``type(err)``).
 ERROR_VARIABLES = {"error", "type"}
 
@@ -64,6 +66,9 @@ def test_the_error_classes_are_exported_and_are_value_errors():
     for name in ERROR_CLASSES:
         assert getattr(symsbl, name) is getattr(_errors, name)
         assert issubclass(getattr(symsbl, name), ValueError)
+    assert WARNING_CLASSES == {"RefineWarning"}  # a warning a user filters on must be importable from symsbl
+    for name in WARNING_CLASSES:
+        assert getattr(symsbl, name) is getattr(_errors, name)
 
 
 @pytest.mark.parametrize("value, text", [(0, "0"), (2.5, "2.5"), ("x" * 100, "'" + "x" * 56 + "...")])

@@ -29,13 +29,15 @@ SEEDS = range(5)
 @pytest.mark.parametrize("name", list(CASES))
 @pytest.mark.parametrize("forcing", ["sine", "multisine"])
 def test_paper_systems_exact_support_over_seeds(name, forcing):
-    """Paper settings (32768 Hz, 0.4 % noise, Eq. 21 to degree 6; 10 Hz 100 N sine or a broadband
-    multisine): exact support in every equation, every coefficient within 1 % (5 % for terms
-    with < 5 % of their equation's variance), held-out NRMSE < 1 %, for 5 noise seeds."""
+    """The equation-error stage (the paper's method) at the paper's settings (32768 Hz, 0.4 % noise,
+    Eq. 21 to degree 6; 10 Hz 100 N sine or a broadband multisine): exact support in every equation,
+    every coefficient within 1 % (5 % for terms with < 5 % of their equation's variance), held-out
+    NRMSE < 1 %, for 5 noise seeds. The refinement that follows by default is checked on the same
+    systems by the demo's test (test_cli) and against references in test_refine."""
     degree = 4 if name.startswith("Bouc") else 6  # keeps the suite short; the demo runs degree 6
     for seed in SEEDS:
         signal = Sine(100.0, 10.0) if forcing == "sine" else Multisine(rms=60, f_min=2, f_max=30, seed=10 + seed)
-        r = run_case(name, seed=seed, duration=2.0, degree=degree, forcing=signal)
+        r = run_case(name, seed=seed, duration=2.0, degree=degree, forcing=signal, refine=False)
         assert r.truth.exact_support, (seed, r.truth.missing, r.truth.spurious, str(r.model))
         assert r.truth.max_error(min_share=0.05) < 0.01, (seed, r.truth.relative_error)
         assert r.truth.max_error() < 0.05, (seed, r.truth.relative_error)
@@ -154,7 +156,9 @@ def test_emps_slice_identifies_the_published_inverse_model_within_its_posterior(
     d = np.load(Path(__file__).parent / "data" / "emps_slice.npz")
     record = position_record(d["t"], d["qm"], d["tau"].astype(float), cutoff=100.0)
     q, v, tau = symbols("q v tau")
-    model = identify(record, custom([tau, v, ca.sign(v), ca.SX(1)], [q, v, tau]))
+    # closed loop with an integrating plant: the published model is an inverse model fitted by equation
+    # error (IDIM-LS), and a free-run simulation from the force drifts, so this stays equation error
+    model = identify(record, custom([tau, v, ca.sign(v), ca.SX(1)], [q, v, tau]), refine=False)
     eq = model.equation("v")
     assert eq.names == list(expected)
     for term in eq.terms:

@@ -4,6 +4,8 @@ import json
 
 import casadi as ca
 import numpy as np
+
+import symsbl
 import pytest
 import sympy as sp
 from helpers import exactly
@@ -198,3 +200,21 @@ def test_a_bad_number_of_band_draws_is_named(duffing, n_band):
     with pytest.raises(DataError, match=rf"n_band: expected a number of Monte Carlo draws >= 0 \(0: no band\), "
                                         rf"received {n_band!r}"):
         validate_model(model, data.slice(0, 1000), n_band=n_band)
+
+
+def test_the_batched_band_equals_one_simulation_per_draw(duffing, duffing_heldout):
+    """All Monte Carlo draws in one compiled call give the band of one simulation per draw."""
+    from symsbl._validate import _band, _band_loop, _draws
+
+    _, _, model = duffing
+    system = model.to_system()
+    kw = dict(inputs=symsbl.Sampled(duffing_heldout.t, duffing_heldout.inputs), x0=duffing_heldout.states[0],
+              method="rk4", substeps=1, on_divergence="truncate")
+    (lower, upper), n = _band(model, system, duffing_heldout, kw, 12, seed=3)
+    draws = _draws(model, 12, seed=3)
+    runs = np.stack(_band_loop(system, duffing_heldout, kw, draws), axis=1)
+    mu, sd = runs.mean(axis=1), runs.std(axis=1, ddof=1)
+    assert n == 12
+    scale = np.max(np.abs(mu), axis=0)
+    np.testing.assert_allclose(lower / scale, (mu - 3 * sd) / scale, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(upper / scale, (mu + 3 * sd) / scale, rtol=0, atol=1e-12)

@@ -98,12 +98,18 @@ def test_pendulum_sine_wins_over_polynomial_look_alikes(seed):
 
 
 def test_pendulum_small_swings_fall_back_to_the_linear_term():
-    """At 0.05 rad sin(x1) and x1 differ by 0.04 %: the data cannot tell them apart, and parsimony
-    keeps x1 (coefficient -g/L within 1 %) and reports sin(x1) as indistinguishable from it."""
+    """At 0.05 rad sin(x1) and x1 differ by 0.04 %: the equation-error fit cannot tell them apart, and
+    parsimony keeps x1 (coefficient -g/L within 1 %) and reports sin(x1) as indistinguishable from it.
+    The output-error fit resolves 0.04 % (its -g/L is 40x more precise) and finds sin(x1)."""
     system = pendulum()
     clean = _pendulum_record(0.1, 3)
     assert np.max(np.abs(clean.states[:, 0])) < 0.06
-    model = identify(clean.with_noise(0.004, seed=3), paper(system.states, system.inputs, degree=5))
+    library = paper(system.states, system.inputs, degree=5)
+    refined = identify(clean.with_noise(0.004, seed=3), library)
+    truth = compare_to_truth(refined, system, clean)
+    assert truth.exact_support, (truth.missing, truth.spurious, str(refined))
+    assert truth.max_error() < 1e-3, _errors(truth)
+    model = identify(clean.with_noise(0.004, seed=3), library, refine=False)
     truth = compare_to_truth(model, system, clean)
     assert truth.missing == {"x1": [], "x2": ["sin(x1)"]} and truth.spurious == {"x1": [], "x2": ["x1"]}
     kept = {t.name: t for t in model.equation("x2").terms}

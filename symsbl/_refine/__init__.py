@@ -1,0 +1,250 @@
+"""Output-error refinement: fit the trajectories, not only the derivatives.
+
+:func:`refine` re-estimates every coefficient of an identified model by minimising the simulation
+error of the *measured* states, each weighted by its own noise level, on one or several records
+(each with its own unknown initial state), and returns the Laplace posterior and evidence:
+
+- :mod:`.problem`: what is estimated (the free coefficients) and the records' layout;
+- :mod:`.sensitivity`: one compiled pass for the simulation, its sensitivities and the
+  Gauss-Newton blocks of every segment;
+- :mod:`.solver`: Levenberg-Marquardt with the segments' initial states eliminated, continuation in
+  the segment length (multiple shooting without continuity constraints, merged until one segment
+  spans each record);
+- :mod:`.laplace`: posterior, evidence, prior precisions, Bayesian model reduction;
+- :mod:`.selection`: term selection on the output-error evidence;
+- :mod:`.engine`: one fit of one structure, and the refined model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import warnings
+
+import numpy as np
+
+from .._checks import choice, integer
+from .._errors import ParameterError, RefineWarning, SimulationError, expected
+from .._library import Library
+from .._model import IdentifiedModel
+from .._progress import Progress
+from .._trajectory import Trajectory
+from .engine import Engine, Settings, stopwatch, to_model
+from .laplace import reduce_model, reprior
+from .problem import INTERPOLATIONS, check_records, window_plan
+from .selection import backward, penalty
+
+__all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
+
+#: Samples refined on at most (2^18: 8 s at 32768 Hz); longer data contribute evenly spaced windows.
+MAX_SAMPLES = 2**18
+
+
+def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajectory], str]:
+    """The records, or evenly spaced windows of them totalling about ``max_samples`` samples."""
+    plan, note = window_plan([r.n_samples for r in records], max_samples)
+    return [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan], note
+
+
+def _candidates(model: IdentifiedModel, library: Library | None) -> dict:
+    """Terms to try in each equation: the equation-error runners-up and indistinguishables (at most 4)."""
+    if library is None:
+        return {}
+    out = {}
+    for eq in model.equations:
+        if eq.fixed:
+            continue
+        names = [n for t in eq.terms for n in t.alternatives] + list(eq.runners_up)
+        present = set(eq.names)
+        exprs = [library[n].expr for n in dict.fromkeys(names) if n in library and n not in present]
+        if exprs:
+            out[eq.lhs] = [(e, 0.0) for e in exprs[:4]]
+    return out
+
+
+def _term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
+    """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
+    import casadi as ca
+
+    z = ca.vertcat(*model.states, *model.inputs)
+    f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
+    return np.asarray(f.map(Z.shape[0])(Z.T)).T
+
+
+def _prior(engine: Engine) -> np.ndarray:
+    """Prior precisions of every coefficient of the compiled structure: the model's own (the relevance
+    vector machine's, else ``1 / coef^2``); for an alternative the equation-error fit found
+    indistinguishable from a term, that term's prior on the same contribution; for another candidate
+    ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
+    model = engine.model
+    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
+         else np.zeros((r.n_samples, 0)) for r in engine.records]
+    Z = np.column_stack([engine.guess, np.vstack(U)])
+    Z = Z[:: max(1, len(Z) // 20000)]
+    alpha = []
+    for eq, full in zip(model.equations, engine.full.equations):
+        if full.fixed:
+            continue
+        D = _term_values([t.expr for t in full.terms], model, Z)
+        scale = float(np.std(D[:, :len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
+        for k, t in enumerate(full.terms):
+            if t.fixed:
+                continue
+            if k < len(eq.terms):
+                alpha.append(_own_alpha(t))
+                continue
+            s = float(np.std(D[:, k]))
+            twin = next((j for j, u in enumerate(eq.terms) if t.name in u.alternatives), None)
+            if twin is not None and s > 0:  # an indistinguishable alternative: the same prior on its contribution
+                alpha.append(_own_alpha(eq.terms[twin]) * (s / max(float(np.std(D[:, twin])), 1e-300)) ** 2)
+            else:
+                alpha.append((s / max(scale, 1e-300)) ** 2 if s > 0 else 1.0)
+    return np.array(alpha)
+
+
+def _own_alpha(term) -> float:
+    return term.alpha if np.isfinite(term.alpha) and term.alpha > 0 else 1.0 / max(term.coef**2, 1e-300)
+
+
+def _objective(sol, cost_per_term: float) -> float:
+    return sol.posterior.log_evidence - cost_per_term * sol.active.size
+
+
+def _select(engine: Engine, first, alpha: np.ndarray, cost: float):
+    """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
+    the model extended by its candidates, confirmed by a refit."""
+    every = np.arange(len(engine.positions))
+    sol = first
+    if every.size > engine.base.size:
+        sol = engine.fit(every, first.theta, alpha, warm=first)
+    keys = [engine.keys[k] for k in sol.active]
+    # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
+    # near-equivalent terms unevenly and would decide between them by that split
+    post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
+    removed = backward(post, alpha[sol.active], cost, keys)
+    chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
+    if set(chosen) == set(engine.base):
+        return first
+    _, mean, _ = reduce_model(post, alpha[sol.active], removed) if removed else (0, post.mean, 0)
+    start = np.zeros_like(sol.theta)
+    start[chosen] = mean if removed else sol.theta[chosen]
+    refit = engine.fit(chosen, start, sol.alpha, warm=sol)
+    return refit if _objective(refit, cost) > _objective(first, cost) else first
+
+
+def refine(model: IdentifiedModel, data, *, measured=None, library: Library | None = None, select: bool = True,
+           interpolation: str = "cubic", substeps="auto", smooth: bool = True, max_samples: int = MAX_SAMPLES,
+           jit="auto") -> IdentifiedModel:
+    """Re-estimate a model's coefficients by output error, with the Laplace posterior and evidence.
+
+    Every coefficient of the equations that are not fixed (kinematic equations ``x' = v`` are exact)
+    is re-estimated by minimising the simulation error of the measured states, each weighted by its
+    own noise precision (re-estimated from the residuals), with the model's prior precisions
+    (re-estimated by MacKay's rule) as the Gaussian prior of the coefficients. Each record keeps its
+    own unknown initial state (unmeasured components included), integrated out of the posterior.
+
+    Parameters
+    ----------
+    model : IdentifiedModel
+        The starting point and structure, typically from :func:`symsbl.identify` (equation error).
+    data : Trajectory or list of Trajectory
+        Records with the measured states and the model's inputs (several records are fitted jointly).
+    measured : sequence of str, optional
+        The states to fit (default: the model's states present in the data). A column of a state that
+        is not measured (a reconstruction of a latent state) is used only as the starting guess of its
+        trajectory.
+    library : Library, optional
+        The candidate library of the equation-error fit: with it, the equation-error runners-up and
+        indistinguishable terms are tried too.
+    select : bool
+        Select terms on the output-error evidence (remove terms whose removal raises the evidence by
+        more than ``1/2 log N + log M`` nats; add runners-up that raise it).
+    interpolation : {"cubic", "linear", "periodic"}
+        How the measured input runs between samples: a cubic spline (default; a linear hold biases
+        stiff, hardening systems by up to two posterior standard deviations at 16 kHz), a linear
+        hold, or band-limited periodic interpolation for records of whole periods.
+    substeps : int or "auto"
+        RK4 steps per sample; "auto" takes enough that ``h |lambda|max <= 0.25``.
+    smooth : bool
+        Fit ``sign(a)`` as ``tanh(a / eps)`` with ``eps = 3e-4 std(a)``: fixed-step RK4 of a sign is
+        discontinuous in the coefficients and its Gauss-Newton curvature twice too large; the model
+        returned keeps ``sign``.
+    max_samples : int
+        Samples refined on at most; longer data contribute evenly spaced windows (the posterior then
+        reflects those samples only, a conservative width).
+    jit : {"auto", True, False}
+        Compile the passes with a C compiler when available.
+
+    Returns
+    -------
+    IdentifiedModel
+        ``fit`` is ``FitMethod.OUTPUT_ERROR``; coefficients, standard deviations, prior precisions,
+        the joint covariance, per-equation noise of the measured states and the log evidence come
+        from the output-error posterior; ``metadata["refine"]`` says what was fitted and how.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192),
+    ...                         inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1))
+    >>> train = train.with_noise(0.01, seed=0)
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.refine(symsbl.identify(train, library), train, library=library)
+    >>> model.fit.value, model.equation("x2").names
+    ('output-error', ['x1', 'x2', 'x1**3', 'F'])
+    >>> round(model.equation("x2").coef("x1**3") / -1e9, 3)
+    1.0
+    """
+    if not isinstance(model, IdentifiedModel):
+        raise ParameterError(expected("model", "an IdentifiedModel", type(model).__name__, raw=True))
+    records, measured = check_records(model, data, measured)
+    choice("interpolation", interpolation, INTERPOLATIONS)
+    max_samples = integer("max_samples", max_samples, low=64)
+    if substeps != "auto":
+        integer("substeps", substeps, low=1)
+    if not any(not eq.fixed and eq.terms for eq in model.equations):
+        raise ParameterError(expected("model", "at least one equation with terms to fit", "none", raw=True))
+    clock = stopwatch()
+    used, note = _windows(records, max_samples)
+    settings = Settings(interpolation=interpolation, substeps=substeps, smooth=smooth, jit=jit)
+    engine = Engine(model, used, measured, settings, _candidates(model, library) if select else {})
+    alpha = _prior(engine)
+    theta0 = np.zeros(len(engine.positions))
+    theta0[engine.base] = engine.param.theta0[engine.base]
+    with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
+        sol = engine.fit(engine.base, theta0, alpha)
+        bar.update()
+        if select:
+            n_obs = int(sum(r.n_samples for r in used)) * len(measured)
+            n_candidates = len(library) if library is not None else max(engine.base.size, 2)
+            sol = _select(engine, sol, alpha, penalty(n_obs, n_candidates))
+        bar.update()
+    info = {"refine": {
+        "samples": note, "interpolation": interpolation, "substeps": engine.substeps, "smoothed_sign": smooth,
+        "segment_length": int(sol.length), "stages": sol.stages, "passes": int(sol.n_pass),
+        "log_evidence": float(sol.posterior.log_evidence), "seconds": round(clock(), 3)}}
+    return to_model(engine, sol, info)
+
+
+def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, options: dict | None = None,
+                   note: str | None = None) -> IdentifiedModel:
+    """The refinement :func:`symsbl.identify` runs by default: :func:`refine` with ``options``; when the
+    simulation diverges on the records (a model the data cannot integrate), a
+    :class:`~symsbl.RefineWarning` and the equation-error model, with ``metadata["refine"]["failed"]``
+    saying why. ``note`` replaces the record of which samples were used (windows read by a caller).
+    """
+    options = {} if options is None else options
+    allowed = [p for p in inspect.signature(refine).parameters if p not in ("model", "data", "library")]
+    if not isinstance(options, dict) or any(k not in allowed for k in options):
+        raise ParameterError(expected("refine_options", f"a dict with keys among {allowed}", options))
+    try:
+        refined = refine(model, records, library=library, **options)
+    except SimulationError as error:
+        warnings.warn(str(error), RefineWarning, stacklevel=3)
+        return dataclasses.replace(model, metadata=dict(model.metadata, refine={"failed": str(error)}))
+    if note is None:
+        return refined
+    return dataclasses.replace(refined, metadata=dict(refined.metadata,
+                                                      refine=dict(refined.metadata["refine"], samples=note)))

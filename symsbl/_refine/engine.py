@@ -1,0 +1,187 @@
+"""The output-error fits of one refinement: one compiled structure, fitted on any subset of its terms.
+
+:class:`Engine` compiles the passes once, for the model extended by the candidate terms; a fit of any
+sub-model holds the coefficients it leaves out at zero. So the model, the model with every candidate
+and the structure model reduction settles on are fitted by one compiled function, and their
+evidences are computed on the same records with the same segmentation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+import sympy as sp
+
+from .._kinematics import estimate_velocity
+from .._model import Equation, FitMethod, IdentifiedModel, TermEstimate
+from .._selection import complexity
+from .._symbolic import casadi_to_sympy, sympy_to_casadi
+from .._weakform import WeakForm
+from .laplace import reduce_model
+from .problem import Parameterisation, Records, choose_substeps
+from .selection import free_positions, with_terms
+from .sensitivity import Passes
+from .solver import Solution, fit
+
+__all__ = ["Engine", "Settings", "to_model", "stopwatch"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """How the output-error fits of one refinement run (see :func:`symsbl.refine`)."""
+
+    interpolation: str = "cubic"
+    substeps: int | str = "auto"
+    smooth: bool = True
+    jit: object = "auto"
+    growth: int = 8
+
+
+def _smoothing_widths(model: IdentifiedModel, records) -> dict:
+    """Per state, the width ``eps`` of ``tanh(x / eps)`` that stands for ``sign(x)`` while fitting."""
+    widths = {}
+    for name in model.state_names:
+        cols = [r.column(name) for r in records if name in r.state_names]
+        scale = float(np.std(np.concatenate(cols))) if cols else 1.0
+        widths[name] = 3e-4 * (scale if scale > 0 else 1.0)
+    return widths
+
+
+def _width(expr: sp.Expr, widths: dict) -> float:
+    names = sorted(str(s) for s in expr.free_symbols)
+    return max((widths.get(n, 1.0) for n in names), default=1.0)
+
+
+def smooth_model(model: IdentifiedModel, widths: dict) -> IdentifiedModel:
+    """The model with ``sign(a)`` replaced by ``tanh(a / eps)``: continuous in its coefficients when simulated
+    with fixed steps, so Gauss-Newton sees a calibrated curvature."""
+    symbols = {s.name(): s for s in model.states + model.inputs}
+
+    def smooth(expr):
+        return expr.replace(sp.sign, lambda arg: sp.tanh(arg / sp.Float(_width(arg, widths))))
+
+    equations = []
+    for eq in model.equations:
+        terms = tuple(dataclasses.replace(t, expr=sympy_to_casadi(smooth(casadi_to_sympy(t.expr)), symbols))
+                      if t.sympy.has(sp.sign) else t for t in eq.terms)
+        equations.append(dataclasses.replace(eq, terms=terms))
+    return dataclasses.replace(model, equations=tuple(equations))
+
+
+class Engine:
+    """The compiled structure (the model and its candidates) and the records of one refinement."""
+
+    def __init__(self, model: IdentifiedModel, records, measured, settings: Settings, candidates: dict):
+        self.model, self.records, self.measured, self.settings = model, records, tuple(measured), settings
+        self.full = with_terms(model, candidates)
+        self.positions = free_positions(self.full)
+        own = set(free_positions(model))
+        self.base = np.array([k for k, p in enumerate(self.positions) if p in own], dtype=int)
+        self.keys = [complexity(self.full.equations[i].terms[j].sympy) for i, j in self.positions]
+        self.widths = _smoothing_widths(model, records)
+        self.guess = self._guess()
+        fitted = smooth_model(self.full, self.widths) if settings.smooth else self.full
+        self.param = Parameterisation.of(fitted)
+        substeps = settings.substeps
+        if substeps == "auto":
+            substeps = choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate())
+        self.substeps = int(substeps)
+        layout = Records.of(fitted, records, self.measured, settings.interpolation, self.substeps)
+        self.passes = Passes(self.param, layout, jit=settings.jit)
+        self.length0 = self._first_length()
+
+    def _guess(self) -> np.ndarray:
+        """Every state at every sample: measured values (or a column given as a guess), velocities from
+        their positions, zeros."""
+        model, rows = self.model, []
+        position_of = {v: x for x, v in model.kinematics}
+        for r in self.records:
+            G = np.zeros((r.n_samples, len(model.states)))
+            for k, name in enumerate(model.state_names):
+                if name in self.measured or name in r.state_names:  # a column not measured: a guess only
+                    G[:, k] = r.column(name)
+                elif name in position_of and position_of[name] in self.measured:
+                    G[:, k] = estimate_velocity(r.t, r.column(position_of[name]))
+            rows.append(G)
+        return np.vstack(rows)
+
+    def _sign_rate(self) -> float:
+        """The largest ``|coef| / eps`` of a ``tanh(a / eps)`` standing for ``sign(a)``: its stiffness at ``a = 0``."""
+        if not self.settings.smooth:
+            return 0.0
+        return max((abs(t.coef) / _width(t.sympy, self.widths) for eq in self.full.equations for t in eq.terms
+                    if t.sympy.has(sp.sign)), default=0.0)
+
+    def _first_length(self) -> int:
+        """About four periods of the highest frequency the measured states carry, at least 64 samples."""
+        r = max(self.records, key=lambda tr: tr.n_samples)
+        X = np.column_stack([r.column(m) for m in self.measured])
+        return int(max(64, 8 * WeakForm().resolve(r.t, X).window))  # the window is 0.5 / f_hi in samples
+
+    def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None) -> Solution:
+        """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
+        from the segments and initial states of ``warm`` when given."""
+        return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
+                   length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm)
+
+
+def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
+    """The model of the fitted sub-structure with the output-error posterior."""
+    post, active = sol.posterior, list(sol.active)
+    where = {engine.positions[k]: n for n, k in enumerate(active)}
+    std = post.std
+    noise = {m: 1.0 / w for m, w in zip(engine.measured, sol.w)}
+    n_samples = int(sum(r.n_samples for r in engine.records))
+    equations, free_order = [], []
+    for i, eq in enumerate(engine.full.equations):
+        if eq.fixed:
+            equations.append(eq)
+            continue
+        kept = [j for j in range(len(eq.terms)) if (i, j) in where or eq.terms[j].fixed]
+        idx = [where.get((i, j)) for j in kept]
+        free_order += [n for n in idx if n is not None]
+        terms = tuple(eq.terms[j] if n is None else
+                      TermEstimate(expr=eq.terms[j].expr, coef=float(post.mean[n]), std=float(std[n]),
+                                   alpha=float(sol.alpha[active[n]]),
+                                   evidence=float(-reduce_model(post, sol.alpha[active], [n])[0]),
+                                   alternatives=eq.terms[j].alternatives) for j, n in zip(kept, idx))
+        equations.append(Equation(eq.lhs, terms, _block(post.covariance, idx), noise.get(eq.lhs, math.nan),
+                                  post.log_evidence, n_samples, runners_up=eq.runners_up))
+    model = dataclasses.replace(engine.model, equations=tuple(equations), fit=FitMethod.OUTPUT_ERROR,
+                                measured=engine.measured, metadata=dict(engine.model.metadata, **info))
+    return dataclasses.replace(model, joint_covariance=_joint(model, free_order, post.covariance))
+
+
+def _block(cov: np.ndarray, idx: list) -> np.ndarray:
+    """The covariance of one equation's terms (``None``: a coefficient fixed by convention, zero rows)."""
+    out = np.zeros((len(idx), len(idx)))
+    free = [p for p, n in enumerate(idx) if n is not None]
+    src = [idx[p] for p in free]
+    out[np.ix_(free, free)] = cov[np.ix_(src, src)]
+    return out
+
+
+def _joint(model: IdentifiedModel, free_order: list, cov: np.ndarray) -> np.ndarray:
+    """The free coefficients' covariance in :meth:`IdentifiedModel.parameters` order (zero for fixed ones)."""
+    rows = []
+    k = 0
+    for eq in model.equations:
+        for t in eq.terms:
+            free = not eq.fixed and not t.fixed
+            rows.append(free_order[k] if free else None)
+            k += 1 if free else 0
+    n = len(rows)
+    out = np.zeros((n, n))
+    free = [p for p, r in enumerate(rows) if r is not None]
+    src = [rows[p] for p in free]
+    out[np.ix_(free, free)] = cov[np.ix_(src, src)]
+    return out
+
+
+def stopwatch():
+    """Seconds since the call (a small closure)."""
+    start = time.perf_counter()
+    return lambda: time.perf_counter() - start

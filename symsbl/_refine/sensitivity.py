@@ -1,0 +1,219 @@
+"""One compiled pass over the records: the simulation, its sensitivities and the Gauss-Newton blocks.
+
+One SX step function carries the state ``x``, its sensitivities ``S = dx/d[theta, x0]`` (the exact
+derivative of the discrete RK4 map, forward mode) and running sums of the Gauss-Newton blocks
+``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every measured
+channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
+segment starts. ``mapaccum`` repeats it over chunks of samples; one MX wrapper is JIT-compiled into
+a C loop (:func:`symsbl._casadi.jit_wrap`) and called through ``Function.buffer()``. The
+accumulators restart every chunk (bounded round-off) and per-segment totals are gathered where
+each piece of a segment ends: one pass gives every block of the normal equations at any segment
+length, with no Python loop over segments or samples.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import casadi as ca
+import numpy as np
+
+from .._casadi import jit_lookup, jit_wrap
+from .._errors import SimulationError
+from .problem import Parameterisation, Records
+
+__all__ = ["Passes"]
+
+#: Samples per compiled call.
+CHUNK = 4096
+#: ``jit="auto"`` compiles the passes for records of at least this many samples (or when the same
+#: structure is fitted again). A fit takes 15-40 passes; on CasADi's virtual machine a pass costs 2-35 us a
+#: sample (a Duffing oscillator to a 3-state Bouc-Wen model with its candidates), compiling 0.5-4 s: the
+#: break-even is a few thousand samples (a 3 s Bouc-Wen record at 4096 Hz: 13 s uncompiled, 5.6 s with
+#: compiling).
+JIT_MIN_SAMPLES = 2**12
+
+
+def _rk4(param: Parameterisation, x, theta, ud, dt, substeps: int):
+    """RK4 over one sample interval in ``substeps`` steps; ``ud`` holds the inputs at the stage nodes."""
+    nu = len(param.model.inputs)
+    h = dt / substeps
+
+    def u_at(node: int):
+        return ud[node * nu:(node + 1) * nu] if nu else ca.SX(0, 1)
+
+    xi = x
+    for j in range(substeps):
+        k1 = param.rhs(xi, u_at(2 * j), theta)
+        k2 = param.rhs(xi + h / 2 * k1, u_at(2 * j + 1), theta)
+        k3 = param.rhs(xi + h / 2 * k2, u_at(2 * j + 1), theta)
+        k4 = param.rhs(xi + h * k3, u_at(2 * j + 2), theta)
+        xi = xi + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return xi
+
+
+def _symbols(param: Parameterisation, substeps: int, n_measured: int):
+    nx, nu, npar = len(param.model.states), len(param.model.inputs), param.n_free
+    return dict(x=ca.SX.sym("x", nx), theta=ca.SX.sym("theta", npar), ud=ca.SX.sym("ud", nu * (2 * substeps + 1)),
+                dt=ca.SX.sym("dt"), reset=ca.SX.sym("reset"), x_start=ca.SX.sym("x_start", nx),
+                y=ca.SX.sym("y", n_measured), sw=ca.SX.sym("sw", n_measured))
+
+
+def sensitivity_step(param: Parameterisation, measured, substeps: int) -> tuple[ca.Function, dict]:
+    """The step ``(z, ud, dt, theta, reset, x_start, y, sw) -> z_next`` with ``z = [x, vec(S), sums]``."""
+    nx, npar, ny = len(param.model.states), param.n_free, len(measured)
+    ns = npar + nx
+    ntri = ns * (ns + 1) // 2
+    nsum = ntri + ns + ny
+    v = _symbols(param, substeps, ny)
+    S = ca.SX.sym("S", nx, ns)
+    sums = ca.SX.sym("sums", nsum)
+    x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
+    seed = ca.vertcat(S, ca.horzcat(ca.DM.eye(npar), ca.DM.zeros(npar, nx)))  # d[x; theta]/d[theta, x0]
+    S_next = ca.jtimes(x_next, ca.vertcat(v["x"], v["theta"]), seed)
+    reset = v["reset"] > 0.5
+    x1 = ca.if_else(reset, v["x_start"], x_next)
+    S1 = ca.if_else(reset, ca.SX(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
+    previous = ca.if_else(reset, ca.SX.zeros(nsum), sums)
+    r = v["sw"] * (v["y"] - x1[list(measured)])
+    J = ca.diag(v["sw"]) @ S1[list(measured), :]
+    JtJ = J.T @ J
+    iu, ju = np.triu_indices(ns)
+    tri = ca.vertcat(*[JtJ[int(a), int(b)] for a, b in zip(iu, ju)])
+    z = ca.vertcat(v["x"], ca.vec(S), sums)
+    z_next = ca.vertcat(x1, ca.vec(S1), previous + ca.vertcat(tri, J.T @ r, r * r))
+    names = ["z", "ud", "dt", "theta", "reset", "x_start", "y", "sw"]
+    f = ca.Function("sensitivity_step", [z, v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"], v["y"], v["sw"]],
+                    [z_next], names, ["z_next"], {"cse": True})
+    return f, dict(nx=nx, ns=ns, ny=ny, ntri=ntri, nsum=nsum, nz=nx + nx * ns + nsum, npar=npar)
+
+
+def state_step(param: Parameterisation, substeps: int) -> ca.Function:
+    """The step ``(x, ud, dt, theta, reset, x_start) -> x_next`` of the simulation alone."""
+    v = _symbols(param, substeps, 0)
+    x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
+    out = ca.if_else(v["reset"] > 0.5, v["x_start"], x_next)
+    return ca.Function("state_step", [v["x"], v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"]], [out],
+                       ["x", "ud", "dt", "theta", "reset", "x_start"], ["x_next"], {"cse": True})
+
+
+def _chunk(step: ca.Function, jit, n_samples: int) -> ca.Function:
+    """``CHUNK`` steps of ``step`` (its first input carried), ``theta`` (input 3) given once."""
+    key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", CHUNK)
+    cached = jit_lookup(key) if jit is not False else None
+    if cached is not None:
+        return cached
+    acc = step.mapaccum("steps", CHUNK)
+    args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) if i in (0, 3)
+            else ca.MX.sym(step.name_in(i), step.size1_in(i), CHUNK) for i in range(step.n_in())]
+    call = [args[0], args[1], args[2], ca.repmat(args[3], 1, CHUNK), *args[4:]]
+    wrapper = ca.Function(f"{step.name()}_chunk", args, [acc(*call)], step.name_in(), step.name_out())
+    lazy = jit == "auto" and n_samples < JIT_MIN_SAMPLES
+    fn, _ = jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy)
+    return fn
+
+
+class Passes:
+    """The records of a fit in the layout of the compiled passes, and the passes themselves."""
+
+    def __init__(self, param: Parameterisation, records: Records, jit="auto"):
+        self.param, self.records = param, records
+        step, self.layout = sensitivity_step(param, records.measured, records.substeps)
+        self._sens = _chunk(step, jit, records.n_total)
+        self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
+        self._state = None  # compiled when a plain simulation is asked for
+        self.jit = jit
+        n, C = records.n_total, CHUNK
+        self.n_pad = -(-n // C) * C
+        pad = self.n_pad - n
+        self.UD = np.vstack([records.UD, np.zeros((pad, records.UD.shape[1]))])
+        self.DT = np.concatenate([records.DT, np.zeros(pad)])
+        finite = np.isfinite(records.Y)
+        self.Y = np.vstack([np.where(finite, records.Y, 0.0), np.zeros((pad, records.Y.shape[1]))])
+        self.valid = np.vstack([finite, np.zeros((pad, records.Y.shape[1]), bool)])
+        self.RESET = np.zeros(self.n_pad)
+        self.X_START = np.zeros((self.n_pad, self.layout["nx"]))
+        self.SW = np.zeros((self.n_pad, records.Y.shape[1]))
+        self.n_obs = self.valid.sum(axis=0)
+
+    # -- segments ------------------------------------------------------------------------------
+    def segment_starts(self, length: int) -> np.ndarray:
+        """Each record cut into ``round(n / length) >= 1`` segments of ``length`` samples (the last one longer)."""
+        starts = []
+        for s, n in zip(self.records.starts, self.records.lengths):
+            k = max(1, int(round(n / length)))
+            starts.extend(int(s) + length * np.arange(k))
+        return np.array(starts, dtype=np.int64)
+
+    def use_segments(self, starts: np.ndarray) -> None:
+        """Reset flags and the bookkeeping of pieces (segments split at chunk starts)."""
+        n, C = self.records.n_total, CHUNK
+        self.starts = starts
+        self.RESET[:] = 0.0
+        self.RESET[starts] = 1.0
+        cuts = np.union1d(starts, np.arange(0, n, C))
+        ends = np.append(cuts[1:], n) - 1
+        segment_of_piece = np.searchsorted(starts, ends, side="right") - 1
+        self.piece_ends = ends
+        self.piece_first = np.searchsorted(segment_of_piece, np.arange(len(starts)))
+        self.chunk_pieces = np.searchsorted(ends, np.arange(0, self.n_pad + 1, C))
+        self.segment_end_pieces = np.searchsorted(ends, np.append(starts[1:], n) - 1)
+        self.record_of_segment = np.searchsorted(self.records.starts, starts, side="right") - 1
+
+    def use_weights(self, w: np.ndarray) -> None:
+        """Noise precisions ``(n_measured,)`` of the measured channels."""
+        self.w = np.asarray(w, dtype=float)
+        self.SW[:] = np.sqrt(self.w)[None, :] * self.valid
+
+    # -- passes --------------------------------------------------------------------------------
+    def sensitivities(self, theta: np.ndarray, X0: np.ndarray):
+        """Per segment: ``H = J^T W J`` ``(K, ns, ns)``, ``g = J^T W r`` ``(K, ns)``, the weighted squared
+        residuals per channel ``(K, ny)`` and ``S^T`` at the segment ends ``(K, ns, nx)``."""
+        lay, C = self.layout, CHUNK
+        nx, ns, ntri = lay["nx"], lay["ns"], lay["ntri"]
+        self.X_START[self.starts] = X0
+        theta = np.ascontiguousarray(theta, dtype=float)
+        buf, call = self._sens_buffer
+        z0 = np.zeros(lay["nz"])
+        zout = np.empty((C, lay["nz"]))
+        pieces = np.empty((len(self.piece_ends), lay["nz"]))
+        buf.set_arg(3, memoryview(theta))
+        buf.set_res(0, memoryview(zout))
+        for c, a in enumerate(range(0, self.n_pad, C)):
+            z0[nx + nx * ns:] = 0.0  # the sums restart every chunk
+            buf.set_arg(0, memoryview(z0))
+            for i, arr in ((1, self.UD), (2, self.DT), (4, self.RESET), (5, self.X_START), (6, self.Y), (7, self.SW)):
+                buf.set_arg(i, memoryview(arr[a:a + C]))
+            call()
+            p0, p1 = self.chunk_pieces[c], self.chunk_pieces[c + 1]
+            if p1 > p0:
+                pieces[p0:p1] = zout[self.piece_ends[p0:p1] - a]
+            z0[:] = zout[-1]
+        sums = np.add.reduceat(pieces[:, nx + nx * ns:], self.piece_first, axis=0)
+        K = len(self.starts)
+        H = np.empty((K, ns, ns))
+        iu, ju = np.triu_indices(ns)
+        H[:, iu, ju] = sums[:, :ntri]
+        H[:, ju, iu] = sums[:, :ntri]
+        end_S = pieces[self.segment_end_pieces, nx:nx + nx * ns].reshape(K, ns, nx)
+        return H, sums[:, ntri:ntri + ns], sums[:, ntri + ns:], end_S
+
+    def simulate(self, theta: np.ndarray, X0: np.ndarray) -> np.ndarray:
+        """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""
+        nx, C = self.layout["nx"], CHUNK
+        self.X_START[self.starts] = X0
+        theta = np.ascontiguousarray(theta, dtype=float)
+        out = np.empty((self.n_pad, nx))
+        if self._state is None:
+            self._state = _chunk(state_step(self.param, self.records.substeps), self.jit, self.records.n_total)
+        buf, call = self._state.buffer()
+        x0 = np.zeros(nx)
+        buf.set_arg(3, memoryview(theta))
+        for a in range(0, self.n_pad, C):
+            buf.set_arg(0, memoryview(x0))
+            for i, arr in ((1, self.UD), (2, self.DT), (4, self.RESET), (5, self.X_START)):
+                buf.set_arg(i, memoryview(arr[a:a + C]))
+            buf.set_res(0, memoryview(out[a:a + C]))
+            call()
+            x0 = out[a + C - 1].copy()
+        return out[:self.records.n_total]

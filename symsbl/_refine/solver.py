@@ -1,0 +1,280 @@
+"""Levenberg-Marquardt on segmented output error, with continuation in the segment length.
+
+The record is cut into segments, each with its own free initial state; the coefficients are shared.
+The normal equations are arrow-shaped, so the segment states are eliminated by a Schur complement
+per segment and an iteration costs one compiled pass plus ``O(K n_x^3 + n_theta^3)``. From short
+segments (each barely longer than the system's memory, so a poor starting point cannot make the
+simulation run away) the fit continues with segments ``growth`` times longer, warm-started, until one
+segment spans each record (the true output error) or a segment's state-transition matrix grows past
+:data:`PHI_STOP` (a chaotic or unstable system, whose long-horizon output error is ill-posed: the fit
+stays at that segment length, which is still a consistent estimator).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .laplace import Posterior, mackay_fixed_point, posterior
+from .sensitivity import Passes
+
+__all__ = ["Solution", "fit", "lm", "noise_precisions"]
+
+#: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
+PHI_STOP = 1e4
+
+
+@dataclass
+class Solution:
+    """An output-error optimum with its posterior."""
+
+    theta: np.ndarray
+    X0: np.ndarray
+    starts: np.ndarray
+    length: int
+    cost: float
+    ssr: np.ndarray
+    w: np.ndarray
+    alpha: np.ndarray
+    posterior: Posterior
+    H: np.ndarray
+    stages: list = field(default_factory=list)
+    n_pass: int = 0
+    active: np.ndarray | None = None
+
+
+def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per channel, ``1 / sigma^2`` of white noise from third differences (robust: median absolute deviation)."""
+    out = []
+    for c in range(Y.shape[1]):
+        d = np.diff(Y[valid[:, c], c], 3)
+        sigma2 = (1.4826 * np.median(np.abs(d - np.median(d)))) ** 2 / 20.0
+        out.append(1.0 / max(sigma2, 1e-300))
+    return np.array(out)
+
+
+def restrict(H: np.ndarray, g: np.ndarray | None, active: np.ndarray, npar: int):
+    """The blocks of the active coefficients (and every segment's initial state)."""
+    idx = np.concatenate([active, npar + np.arange(H.shape[1] - npar)])
+    return H[:, idx][:, :, idx], (None if g is None else g[:, idx])
+
+
+def _step(H, g, theta, alpha, lam):
+    """The damped step ``(H + A + lam diag) d = g - A theta``; segment states eliminated per segment."""
+    npar = theta.size
+    Htt = H[:, :npar, :npar].sum(0) + np.diag(alpha)
+    Htx, Hxx = H[:, :npar, npar:], H[:, npar:, npar:].copy()
+    gt, gx = g[:, :npar].sum(0) - alpha * theta, g[:, npar:]
+    nx = Hxx.shape[1]
+    dxx = np.einsum("kii->ki", Hxx)
+    Hxx[:, np.arange(nx), np.arange(nx)] += lam * dxx + 1e-12 * np.maximum(dxx.max(1, keepdims=True), 1e-300)
+    rhs = np.concatenate([np.transpose(Htx, (0, 2, 1)), gx[:, :, None]], axis=2)
+    sol = np.linalg.solve(Hxx, rhs)
+    S = Htt + np.diag(lam * np.diag(Htt)) - np.einsum("kpi,kiq->pq", Htx, sol[:, :, :npar])
+    b = gt - np.einsum("kpi,ki->p", Htx, sol[:, :, npar])
+    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    dth = np.linalg.solve(S / np.outer(d, d), b / d) / d
+    dX = sol[:, :, npar] - np.einsum("kip,p->ki", sol[:, :, :npar], dth)
+    Hd_t = Htt @ dth + np.einsum("kpi,ki->p", Htx, dX)
+    Hd_x = np.einsum("kpi,p->ki", Htx, dth) + np.einsum("kij,kj->ki", H[:, npar:, npar:], dX)
+    predicted = dth @ gt + np.sum(dX * gx) - 0.5 * (dth @ Hd_t + np.sum(dX * Hd_x))
+    return dth, dX, predicted
+
+
+@np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
+def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 60, lam: float = 1e-4):
+    """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed weights and
+    segments; returns ``theta, X0, (H, g, rr, end_S), n_pass``."""
+    npar = theta.size
+    H, g, rr, end_S = passes.sensitivities(theta, X0)
+    n_pass = 1
+    E = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
+    if not np.isfinite(E):
+        return theta, X0, (H, g, rr, end_S), n_pass
+    nu = 2.0
+    for _ in range(max_iter):
+        Hs, gs = restrict(H, g, active, npar)
+        try:
+            step, dX, predicted = _step(Hs, gs, theta[active], alpha[active], lam)
+        except np.linalg.LinAlgError:
+            step, dX, predicted = None, None, np.nan
+        if not (np.isfinite(predicted) and np.all(np.isfinite(step)) and np.all(np.isfinite(dX))):
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e12:
+                break
+            continue
+        dth = np.zeros(npar)
+        dth[active] = step
+        trial = passes.sensitivities(theta + dth, X0 + dX)
+        n_pass += 1
+        E_trial = 0.5 * trial[2].sum() + 0.5 * np.sum(alpha[active] * (theta + dth)[active] ** 2)
+        rho = (E - E_trial) / predicted if predicted > 0 else -1.0
+        if np.isfinite(E_trial) and rho > 1e-4:
+            E_old, E = E, E_trial
+            theta, X0 = theta + dth, X0 + dX
+            H, g, rr, end_S = trial
+            lam, nu = max(lam * max(0.1, 1 - (2 * rho - 1) ** 3), 1e-12), 2.0
+            if predicted < tol and E_old - E < 2 * tol:
+                break
+        else:
+            if predicted < 1e-3 * tol:
+                break
+            lam *= nu
+            nu *= 2.0
+    return theta, X0, (H, g, rr, end_S), n_pass
+
+
+@np.errstate(over="ignore", invalid="ignore")
+def initial_states(passes: Passes, theta, X0, sweeps: int = 3):
+    """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
+    segment whose step does not lower its cost tries a quarter of it next."""
+    npar = theta.size
+    H, g, rr, _ = passes.sensitivities(theta, X0)
+    cost = 0.5 * rr.sum(1)
+    shrink = np.ones(len(X0))
+    for _ in range(sweeps):
+        Hxx = H[:, npar:, npar:].copy()
+        nx = Hxx.shape[1]
+        dxx = np.einsum("kii->ki", Hxx)
+        Hxx[:, np.arange(nx), np.arange(nx)] += 1e-9 * dxx + 1e-300
+        dX = np.linalg.solve(Hxx, g[:, npar:, None])[:, :, 0] * shrink[:, None]
+        H2, g2, rr2, _ = passes.sensitivities(theta, X0 + dX)
+        c2 = 0.5 * rr2.sum(1)
+        better = np.isfinite(c2) & (c2 <= cost)
+        X0 = X0 + dX * better[:, None]
+        H[better], g[better], cost[better] = H2[better], g2[better], c2[better]
+        shrink = np.where(better, 1.0, shrink / 4)
+    return X0
+
+
+def _reweight(passes: Passes, rr, n_free: int):
+    """New noise precisions from the residuals (degrees of freedom shared in proportion to the samples)."""
+    dof = n_free + len(passes.starts) * passes.layout["nx"]
+    keep = 1.0 - dof / max(passes.n_obs.sum(), 1)
+    ssr = rr.sum(0) / passes.w
+    return passes.n_obs * max(keep, 0.5) / np.maximum(ssr, 1e-300)
+
+
+def _longest(length: int, phi: float) -> int:
+    """The longest segment whose state-transition growth stays below :data:`PHI_STOP`, if it grows
+    exponentially from ``phi`` over ``length`` samples (no limit for a contracting system)."""
+    if phi <= np.e:
+        return np.iinfo(np.int64).max
+    return int(length * np.log(PHI_STOP) / np.log(phi))
+
+
+def _growth(end_S, npar: int, scale: np.ndarray) -> float:
+    """Largest singular value of the segments' scaled state-transition matrices."""
+    if not len(end_S):
+        return 1.0
+    Phi = end_S[:, npar:, :] * scale[:, None] / scale[None, :]
+    if not np.all(np.isfinite(Phi)):
+        return np.inf
+    return float(np.max(np.linalg.svd(Phi, compute_uv=False)))
+
+
+def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
+    """Each state's typical size: RMS of its guess, or (a latent state, no guess) of the segments' initial
+    states, else 1."""
+    scale = np.sqrt(np.mean(guess**2, axis=0))
+    start = np.sqrt(np.mean(X0**2, axis=0))
+    scale = np.where(scale > 0, scale, start)
+    return np.where(scale > 0, scale, 1.0)
+
+
+def _first_segments(passes: Passes, theta, guess, length: int):
+    starts = passes.segment_starts(length)
+    passes.use_segments(starts)
+    return initial_states(passes, theta, guess[starts].copy())
+
+
+def _settle_noise(passes: Passes, theta, X0, alpha, active, tol: float, update_noise: bool):
+    """LM at the current weights, then once more if the noise estimate moved by more than 2 %."""
+    theta, X0, blocks, n = lm(passes, theta, X0, alpha, active, tol=tol)
+    if update_noise:
+        w_new = _reweight(passes, blocks[2], active.size)
+        if np.max(np.abs(np.log(w_new / passes.w))) > 0.02:
+            passes.use_weights(w_new)
+            theta, X0, blocks, n2 = lm(passes, theta, X0, alpha, active, tol=tol)
+            n += n2
+    return theta, X0, blocks, n
+
+
+def _prior_precisions(H, theta, alpha, active):
+    """MacKay's fixed point for the prior precisions of the active coefficients, on the quadratic model of
+    the data term at the optimum (no further passes); see :func:`~symsbl._refine.laplace.mackay_fixed_point`."""
+    Hs, _ = restrict(H, None, active, theta.size)
+    new, _ = mackay_fixed_point(Hs, theta[active], alpha[active])
+    out = alpha.copy()
+    out[active] = new
+    return out
+
+
+def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
+        update_noise: bool = True, mackay: bool = True, tol: float = 1e-4, warm: Solution | None = None) -> Solution:
+    """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
+
+    Parameters
+    ----------
+    passes : Passes
+    theta0, alpha0 : ndarray, shape (n_free,)
+        Starting coefficients and prior precisions.
+    guess : ndarray, shape (n_total, n_states)
+        A guess of every state at every sample (measured values, estimated velocities, zeros), from
+        which the segments' initial states start.
+    active : ndarray of int, optional
+        The coefficients fitted (default: all); the others stay at ``theta0`` (a sub-model of the
+        compiled structure: a coefficient switched off is held at zero).
+    length0, growth : int
+        First segment length (samples) and the factor by which it grows.
+    w : ndarray, optional
+        Noise precisions per measured channel (default: from third differences).
+    update_noise, mackay : bool
+        Re-estimate the noise precisions; re-estimate the prior precisions (MacKay).
+    warm : Solution, optional
+        A solution of a nearby structure: its segments, initial states and noise are the start, and
+        the segments do not grow again (the structure's optimum is near).
+    """
+    theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
+    active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
+    n_total = passes.records.n_total
+    passes.use_weights(noise_precisions(passes.Y[:n_total], passes.valid[:n_total]) if w is None else w)
+    full = int(passes.records.lengths.max())
+    length = min(length0, full)
+    if warm is not None:
+        passes.use_segments(warm.starts)
+        X0, length, full = warm.X0.copy(), warm.length, warm.length
+    else:
+        X0 = _first_segments(passes, theta, guess, length)
+    scale = _state_scale(guess, X0)
+    stages, n_pass = [], 0
+    while True:
+        final = length >= full
+        theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
+                                                        update_noise)
+        n_pass += n
+        phi = _growth(end_S, theta.size, scale)
+        stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
+                           cost=float(0.5 * rr.sum())))
+        if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
+            break
+        factor = min(growth, _longest(length, phi) // length)
+        if factor < 2:
+            break  # longer segments would amplify the state by more than PHI_STOP: stay here
+        new_length = min(length * factor, full)
+        new_starts = passes.segment_starts(new_length)
+        X0 = X0[np.searchsorted(passes.starts, new_starts)]
+        passes.use_segments(new_starts)
+        length = new_length
+    if mackay:
+        alpha = _prior_precisions(H, theta, alpha, active)
+        theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol)
+        n_pass += n
+    Hs, _ = restrict(H, None, active, theta.size)
+    cost = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
+    post = posterior(Hs, theta[active], alpha[active], cost, passes.n_obs, passes.w)
+    return Solution(theta=theta, X0=X0, starts=passes.starts.copy(), length=length, cost=float(cost),
+                    ssr=rr.sum(0) / passes.w, w=passes.w.copy(), alpha=alpha, posterior=post, H=H, stages=stages,
+                    n_pass=n_pass, active=active)
