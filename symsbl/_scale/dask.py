@@ -35,6 +35,7 @@ from .._model import IdentifiedModel
 from .._regression import RegressionStats, block_stats, check_variation, library_columns
 from .._rvm import RVM
 from .._trajectory import Trajectory, validate
+from .._refine.problem import window_plan
 from .stream import RESOLVE_SAMPLES
 
 __all__ = ["dask_stats", "identify_dask", "from_delayed"]
@@ -327,11 +328,16 @@ def identify_dask(
     jit="auto",
     scheduler=None,
     equivalence_nats: float = 2.0,
+    refine: bool = True,
+    refine_options: dict | None = None,
 ) -> IdentifiedModel:
     """Identify one sparse ODE per state from records in ``dask.array`` s.
 
     :func:`dask_stats` on the cluster, then :func:`symsbl.fit_stats` locally (the
-    fit needs only the ``n_terms x n_terms`` statistics). Parameters as in those functions.
+    fit needs only the ``n_terms x n_terms`` statistics) and, by default, the output-error
+    refinement locally on at most ``refine_options["max_samples"]`` (2^18 by default)
+    samples, as evenly spaced windows fetched from the records (as :func:`symsbl.identify_stream`
+    does). Other parameters as in those functions.
 
     Returns
     -------
@@ -357,4 +363,19 @@ def identify_dask(
         records, library, states=states, inputs=inputs, derivative=derivative, block_samples=block_samples,
         chunk_size=chunk_size, jit=jit, scheduler=scheduler,
     )
-    return fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
+    model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
+    if not refine:
+        return model
+    from .._refine import MAX_SAMPLES, refine_or_keep
+
+    names = (tuple(states), tuple(inputs))
+    items = _dask_records(records, 1 + len(names[0]) + len(names[1]), names)
+    options = dict(refine_options or {})
+    plan, note = window_plan([int(r.shape[0]) for r in items],
+                             integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64))
+    ns = len(names[0])
+    windows = []
+    for k, a, b in plan:
+        arr = np.asarray(items[k][a:b].compute(scheduler=scheduler), dtype=float)
+        windows.append(Trajectory(arr[:, 0], arr[:, 1:1 + ns], arr[:, 1 + ns:], names[0], names[1]))
+    return refine_or_keep(model, windows, library=library, options=options, note=note)

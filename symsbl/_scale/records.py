@@ -23,7 +23,8 @@ from .._checks import integer, number
 from .._errors import DataError, expected
 from .._trajectory import TIME_RTOL, Trajectory, validate
 
-__all__ = ["ChunkedRecord", "chunked", "open_npz", "as_records", "RecordReader", "blocks", "BLOCK_SAMPLES"]
+__all__ = ["ChunkedRecord", "chunked", "open_npz", "as_records", "RecordReader", "blocks", "read_windows",
+           "BLOCK_SAMPLES"]
 
 #: Samples gathered per block when a record arrives in smaller chunks (8 s at 32768 Hz).
 BLOCK_SAMPLES = 2**18
@@ -329,3 +330,25 @@ def blocks(reader: RecordReader, block_samples: int) -> Iterator[tuple[np.ndarra
         previous = tuple(np.concatenate(cols) if len(pending) > 1 else cols[0] for cols in zip(*pending))
     if previous is not None:
         yield (*previous, True)
+
+
+def read_windows(records: Sequence, plan) -> list[Trajectory]:
+    """The samples ``start:stop`` of record ``k`` for every ``(k, start, stop)`` of ``plan``, read again."""
+    out: dict[int, Trajectory] = {}
+    for k in sorted({k for k, _, _ in plan}):
+        wanted = [(n, a, b) for n, (j, a, b) in enumerate(plan) if j == k]
+        reader = RecordReader(records[k], k)
+        parts: dict[int, list] = {n: [] for n, _, _ in wanted}
+        position = 0
+        for t, X, U in reader:
+            for n, a, b in wanted:
+                lo, hi = max(a - position, 0), min(b - position, len(t))
+                if lo < hi:
+                    parts[n].append((t[lo:hi], X[lo:hi], U[lo:hi]))
+            position += len(t)
+            if position >= max(b for _, _, b in wanted):
+                break
+        for n, _, _ in wanted:
+            t, X, U = (np.concatenate(cols) for cols in zip(*parts[n]))
+            out[n] = Trajectory(t=t, states=X, inputs=U, state_names=reader.names[0], input_names=reader.names[1])
+    return [out[n] for n in range(len(plan))]

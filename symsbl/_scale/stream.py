@@ -50,7 +50,8 @@ from .._progress import Progress
 from .._regression import RegressionStats, block_stats, check_variation, library_columns
 from .._rvm import RVM
 from .._trajectory import Trajectory
-from .records import BLOCK_SAMPLES, RecordReader, as_records, blocks
+from .records import BLOCK_SAMPLES, RecordReader, as_records, blocks, read_windows
+from .._refine.problem import window_plan
 
 __all__ = ["stream_stats", "identify_stream", "RESOLVE_SAMPLES"]
 
@@ -115,6 +116,12 @@ def stream_stats(
     >>> bool(np.allclose(streamed.stats.gram, in_memory.stats.gram, rtol=1e-12))
     True
     """
+    return _stream_stats(records, library, derivative=derivative, chunk_size=chunk_size, block_samples=block_samples,
+                         jit=jit, n_jobs=n_jobs)[0]
+
+
+def _stream_stats(records, library, *, derivative, chunk_size, block_samples, jit, n_jobs):
+    """:func:`stream_stats`, and the number of samples of every record."""
     records = as_records(records)
     if not isinstance(library, Library):
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
@@ -123,7 +130,7 @@ def stream_stats(
     diff = get_differentiator(derivative)
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     pool = ThreadPoolExecutor(n_jobs) if n_jobs > 1 else None
-    total, n_rows, names = None, 0, None
+    total, n_rows, names, counts = None, 0, None, []
     lengths = [r.n_samples if isinstance(r, Trajectory) else None for r in records]
     bar = Progress(f"dictionary ({len(library)} terms) and Gram, streamed", unit="samples",
                    total=None if None in lengths else sum(lengths))
@@ -131,8 +138,9 @@ def stream_stats(
         with bar:
             for index, record in enumerate(records):
                 reader = RecordReader(record, index)
-                part, rows, diff = _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool,
-                                                 n_jobs, bar)
+                part, rows, diff, count = _record_stats(reader, library, diff, evaluator, chunk_size, block_samples,
+                                                        pool, n_jobs, bar)
+                counts.append(count)
                 if names is None:
                     names = reader.names
                 elif reader.names != names:
@@ -146,7 +154,7 @@ def stream_stats(
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
     enough_rows(n_rows, len(library), f"{len(records)} record(s) with {type(diff).__name__}")
-    return RegressionStats(total, library, names[0], names[1], diff)
+    return RegressionStats(total, library, names[0], names[1], diff), counts
 
 
 def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, pool, n_jobs, bar):
@@ -157,6 +165,7 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
     pending: deque = deque()
     total, n_rows = None, 0
     read = 0  # samples read since the last block was reduced, counted when their block is done
+    count = 0
 
     def collect(result, samples):
         nonlocal total
@@ -165,6 +174,7 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
 
     for t, X, U, last in blocks(reader, block_samples):
         read += len(t)
+        count += len(t)
         if columns is None:
             columns = library_columns(*reader.names, library)
             head = X[:RESOLVE_SAMPLES]
@@ -206,7 +216,7 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
         collect(future.result(), samples)
     bar.update(read)  # samples that completed no row (a last incomplete window)
     _check_extremes(reader, library, lo, hi)
-    return total, n_rows, diff
+    return total, n_rows, diff, count
 
 
 def _check_extremes(reader, library, lo, hi) -> None:
@@ -230,12 +240,18 @@ def identify_stream(
     jit="auto",
     n_jobs: int = 1,
     equivalence_nats: float = 2.0,
+    refine: bool = True,
+    refine_options: dict | None = None,
 ) -> IdentifiedModel:
     """Identify one sparse ODE per state from records read block by block.
 
-    :func:`stream_stats` followed by :func:`symsbl.fit_stats`; the parameters are
-    those of the two functions. Peak memory is set by ``block_samples``, ``chunk_size`` and the
-    number of terms, not by the length of the records.
+    :func:`stream_stats` followed by :func:`symsbl.fit_stats` and, by default, the output-error
+    refinement (:func:`symsbl.refine`) on at most ``refine_options["max_samples"]``
+    (2^18 by default) samples: whole records when they fit, else evenly
+    spaced windows read again from the records. Peak memory is set by ``block_samples``,
+    ``chunk_size``, the number of terms and that sample budget, not by the length of the records.
+    The other parameters are those of the functions named; ``refine=False`` stops at the
+    equation-error model.
 
     Returns
     -------
@@ -253,8 +269,14 @@ def identify_stream(
     >>> model.equation("x2").names
     ['x1', 'x2', 'x1**3', 'F']
     """
-    problem = stream_stats(
-        records, library, derivative=derivative, chunk_size=chunk_size, block_samples=block_samples,
-        jit=jit, n_jobs=n_jobs,
-    )
-    return fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
+    records = as_records(records)
+    problem, counts = _stream_stats(records, library, derivative=derivative, chunk_size=chunk_size,
+                                    block_samples=block_samples, jit=jit, n_jobs=n_jobs)
+    model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
+    if not refine:
+        return model
+    from .._refine import MAX_SAMPLES, refine_or_keep
+
+    options = dict(refine_options or {})
+    plan, note = window_plan(counts, integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64))
+    return refine_or_keep(model, read_windows(records, plan), library=library, options=options, note=note)
