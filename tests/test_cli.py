@@ -1,10 +1,12 @@
 """The command line: identify, simulate, demo, and the errors a user can trigger."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
+
 import pytest
 
 from symsbl import Multisine, simulate, systems, time_grid, write_trajectory
@@ -156,6 +158,11 @@ def test_demo_quick(capsys, tmp_path):
     assert code == 0, err
     table = out[out.index("system "):]
     assert table.count("exact") == 5 and "WRONG" not in table
+    for row in table.splitlines()[1:6]:  # equation error -> output error, per column
+        (ee, oe), (ee_all, oe_all), (ee_held, oe_held) = [tuple(map(float, cell.split(" -> ")))
+                                                          for cell in re.findall(r"[\d.]+ -> [\d.]+", row)]
+        assert oe < 0.05 and oe < ee and oe_all < ee_all, row  # percent
+        assert oe_held < 0.41 and oe_held <= ee_held, row  # the noise floor is 0.4 %
     written = sorted(p.name for p in tmp_path.glob("*.png"))
     assert written == ["bouc_wen_n_2.png", "coulomb_friction.png", "duffing.png", "linear.png", "quadratic_damping.png"]
     assert all((tmp_path / name).stat().st_size > 10_000 for name in written)

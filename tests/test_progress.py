@@ -213,10 +213,13 @@ def test_identification_and_the_band_report_their_rows_equations_and_draws(termi
     train = simulate(systems.duffing(), time_grid(0.5, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
     model = symsbl.identify(train, symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F]))
     symsbl.validate_model(model, train.slice(0, 1000), n_band=3)
-    labels = [line.split(" in ")[0] for line in finished(stream.getvalue()) if not line.startswith("simulate")]
+    lines = [line.split(" in ")[0] for line in finished(stream.getvalue())]
+    labels = [line for line in lines if not line.startswith("simulate")]
     done, total = map(int, re.fullmatch(r"dictionary \(\d+ terms\) and Gram: (\d+)/(\d+) rows", labels[0]).groups())
     assert done == total == model.metadata["n_rows"]
-    assert labels[1:] == ["fit: 2/2 equations", "predictive band (Monte Carlo): 3/3 draws"]
+    assert labels[1:] == ["fit: 2/2 equations", "output-error refinement: 2/2 fits"]
+    # the band's draws run as one batched simulation, reported with their count
+    assert lines[-1] == "simulate identified x 3 draws (rk4): 999/999 steps", lines
 
 
 def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
