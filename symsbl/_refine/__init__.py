@@ -32,6 +32,7 @@ from .._trajectory import Trajectory
 from .engine import Engine, Settings, stopwatch, to_model
 from .laplace import reduce_model, reprior
 from .problem import INTERPOLATIONS, check_records, window_plan
+from .screen import screen_terms
 from .selection import backward, penalty
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
@@ -106,6 +107,29 @@ def _own_alpha(term) -> float:
     return term.alpha if np.isfinite(term.alpha) and term.alpha > 0 else 1.0 / max(term.coef**2, 1e-300)
 
 
+def _extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: dict, library: Library):
+    """The engine, solution and prior precisions with the screened terms added to the candidates (held at zero
+    in the solution); unchanged when the screen found nothing new."""
+    merged = {lhs: list(c) for lhs, c in candidates.items()}
+    new = False
+    for lhs, names in screened.items():
+        have = {str(e) for e, _ in merged.get(lhs, [])}
+        for name in names:
+            expr = library[name].expr
+            if str(expr) not in have:
+                merged.setdefault(lhs, []).append((expr, 0.0))
+                new = True
+    if not new:
+        return engine, sol, alpha
+    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged)
+    alpha = _prior(wider)
+    theta = np.zeros(len(wider.positions))
+    theta[wider.base] = sol.theta[engine.base]
+    fitted_alpha = alpha.copy()
+    fitted_alpha[wider.base] = sol.alpha[engine.base]
+    return wider, dataclasses.replace(sol, theta=theta, alpha=fitted_alpha, active=wider.base), alpha
+
+
 def _objective(sol, cost_per_term: float) -> float:
     return sol.posterior.log_evidence - cost_per_term * sol.active.size
 
@@ -158,7 +182,10 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         indistinguishable terms are tried too.
     select : bool
         Select terms on the output-error evidence (remove terms whose removal raises the evidence by
-        more than ``1/2 log N + log M`` nats; add runners-up that raise it).
+        more than ``1/2 log N + log M`` nats; add runners-up that raise it). When a state is not
+        measured, library terms are also screened by their output-error score (see
+        :mod:`symsbl._refine.screen`) and the best are tried; ``metadata["refine"]["screened"]``
+        lists them.
     interpolation : {"cubic", "linear", "periodic"}
         How the measured input runs between samples: a cubic spline (default; a linear hold biases
         stiff, hardening systems by up to two posterior standard deviations at 16 kHz), a linear
@@ -209,22 +236,31 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     clock = stopwatch()
     used, note = _windows(records, max_samples)
     settings = Settings(interpolation=interpolation, substeps=substeps, smooth=smooth, jit=jit)
-    engine = Engine(model, used, measured, settings, _candidates(model, library) if select else {})
+    candidates = _candidates(model, library) if select else {}
+    engine = Engine(model, used, measured, settings, candidates)
     alpha = _prior(engine)
     theta0 = np.zeros(len(engine.positions))
     theta0[engine.base] = engine.param.theta0[engine.base]
+    screened = {}
     with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
         if select:
             n_obs = int(sum(r.n_samples for r in used)) * len(measured)
             n_candidates = len(library) if library is not None else max(engine.base.size, 2)
-            sol = _select(engine, sol, alpha, penalty(n_obs, n_candidates))
+            cost = penalty(n_obs, n_candidates)
+            if library is not None and set(model.state_names) - set(measured):
+                # a state estimated, not measured, may have hidden a term from the equation error
+                once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
+                screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
+                                  sol, engine, library, lambda n: penalty(n, n_candidates))
+                engine, sol, alpha = _extend(engine, sol, alpha, candidates, screened, library)
+            sol = _select(engine, sol, alpha, cost)
         bar.update()
     info = {"refine": {
         "samples": note, "interpolation": interpolation, "substeps": engine.substeps, "smoothed_sign": smooth,
         "segment_length": int(sol.length), "stages": sol.stages, "passes": int(sol.n_pass),
-        "log_evidence": float(sol.posterior.log_evidence), "seconds": round(clock(), 3)}}
+        "log_evidence": float(sol.posterior.log_evidence), "screened": screened, "seconds": round(clock(), 3)}}
     return to_model(engine, sol, info)
 
 

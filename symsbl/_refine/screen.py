@@ -1,0 +1,134 @@
+"""Forward screening: which library terms would raise the output-error fit if they were added.
+
+Run by :func:`symsbl.refine` when a state of the model is not measured.
+
+The equation-error fit proposes a structure, its runners-up and the terms it found
+indistinguishable. When a state is estimated rather than measured (a velocity differentiated from a
+displacement), a small term can be missing from all three: its equation-error evidence is lost in
+the estimate's error although the simulated response needs it. The screen asks the output error
+directly. One sensitivity pass of the fitted structure, extended by candidate terms held at zero,
+gives for each candidate the gain of the quadratic model of the data term when that candidate is
+added and the current terms and initial states re-adjust (a score, or Lagrange-multiplier,
+statistic):
+
+    gain_j = 1/2 (g_j - S_jA P^-1 g_A)^2 / (S_jj - S_jA P^-1 S_Aj),   P = S_AA + diag(alpha_A),
+
+where ``S`` is the data's information with every segment's initial state eliminated (a Schur
+complement) and ``g`` the gradient with the same elimination. The pass runs on evenly spaced
+windows of at most :data:`SCREEN_SAMPLES` samples, starting on the fitted trajectory. Candidates
+whose gain there clears the selection penalty at that size are handed to the term selection, which
+decides on refits and the evidence of all the samples refined on. An effect whose gain on the whole
+record barely clears the penalty can stay below it on the screened samples and is not proposed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._library import Library
+from .._selection import complexity
+from .problem import window_plan
+
+__all__ = ["screen_terms", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
+
+#: Samples the screening pass runs on at most (evenly spaced windows of the refined records).
+SCREEN_SAMPLES = 2**13
+#: Candidate terms screened at most, over all equations (the simplest first).
+MAX_SCREENED = 32
+#: Candidates handed to the term selection per equation at most (the largest gains).
+PER_EQUATION = 3
+
+
+def _pool(model, library: Library) -> dict:
+    """Per fitted equation, the library terms it does not hold, simplest first, at most :data:`MAX_SCREENED`."""
+    fitted = [eq for eq in model.equations if not eq.fixed]
+    if not fitted:
+        return {}
+    share = max(1, MAX_SCREENED // len(fitted))
+    order = sorted(range(len(library)), key=lambda k: complexity(library.terms[k].sympy))
+    pool = {}
+    for eq in fitted:
+        present = set(eq.names) | {a for t in eq.terms for a in t.alternatives}
+        names = [library.terms[k].name for k in order if library.terms[k].name not in present]
+        if names:
+            pool[eq.lhs] = names[:share]
+    return pool
+
+
+def _reduced(H: np.ndarray, g: np.ndarray, npar: int):
+    """Information and gradient of the coefficients with every segment's initial state eliminated."""
+    Htt, Htx, Hxx = H[:, :npar, :npar].sum(axis=0), H[:, :npar, npar:], H[:, npar:, npar:]
+    ev, V = np.linalg.eigh(Hxx)
+    keep = ev > 1e-12 * np.maximum(ev.max(axis=1, keepdims=True), 1e-300)
+    inv = np.where(keep, 1.0 / np.where(keep, ev, 1.0), 0.0)
+    pinv = np.einsum("kij,kj,klj->kil", V, inv, V)
+    S = Htt - np.einsum("kpi,kij,kqj->pq", Htx, pinv, Htx)
+    gr = g[:, :npar].sum(axis=0) - np.einsum("kpi,kij,kj->p", Htx, pinv, g[:, npar:])
+    return 0.5 * (S + S.T), gr
+
+
+def gains(S: np.ndarray, g: np.ndarray, base: np.ndarray, alpha_base: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The quadratic model's gain (nats) of adding each of ``others`` to ``base`` (see the module text)."""
+    P = S[np.ix_(base, base)] + np.diag(alpha_base)
+    B = S[np.ix_(others, base)]
+    solved = np.linalg.solve(P, np.column_stack([B.T, g[base]]))
+    info = S[others, others] - np.einsum("ja,aj->j", B, solved[:, :-1])
+    score = g[others] - B @ solved[:, -1]
+    scale = np.maximum(np.abs(S[others, others]), 1e-300)
+    return np.where(info > 1e-10 * scale, 0.5 * score**2 / np.maximum(info, 1e-300), 0.0)
+
+
+def screen_terms(engine_of, model, records, solution, base_engine, library: Library, threshold) -> dict:
+    """Library terms worth trying in each equation, ``{state: [name, ...]}`` (largest gain first).
+
+    Parameters
+    ----------
+    engine_of : callable
+        ``engine_of(records, candidates)`` builds an :class:`~symsbl._refine.engine.Engine` of ``model``
+        extended by ``candidates`` (``{state: [(expr, 0.0), ...]}``) on ``records``.
+    model : IdentifiedModel
+        The structure fitted.
+    records : list of Trajectory
+        The records refined on.
+    solution : Solution
+        The fit of ``model`` on ``records`` by ``base_engine``.
+    base_engine : Engine
+    library : Library
+    threshold : callable
+        ``threshold(n_obs)``: nats a candidate's gain on ``n_obs`` screened measurements must exceed (the
+        selection's penalty per term at that size).
+    """
+    pool = _pool(model, library)
+    if not pool:
+        return {}
+    plan, _ = window_plan([r.n_samples for r in records], SCREEN_SAMPLES)
+    windows = [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan]
+    candidates = {lhs: [(library[n].expr, 0.0) for n in names] for lhs, names in pool.items()}
+    engine = engine_of(windows, candidates)
+    passes = engine.passes
+    theta = np.zeros(len(engine.positions))
+    theta[engine.base] = solution.theta[base_engine.base]
+    passes.use_weights(solution.w)
+    length = min(int(solution.length), int(passes.records.lengths.max()))
+    starts = passes.segment_starts(length)
+    passes.use_segments(starts)
+    # the segments start on the fitted trajectory (the candidates are at zero: the same states)
+    main = base_engine.passes
+    main.use_segments(solution.starts)
+    origin = np.concatenate([main.records.starts[k] + np.arange(a, b) for k, a, b in plan])
+    with np.errstate(all="ignore"):
+        X0 = main.simulate(solution.theta, solution.X0)[origin[starts]]
+        H, g, _, _ = passes.sensitivities(theta, X0)
+    if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
+        return {}
+    S, gr = _reduced(H, g, theta.size)
+    others = np.setdiff1d(np.arange(theta.size), engine.base)
+    found = gains(S, gr, engine.base, solution.alpha[base_engine.base], others)
+    limit = threshold(int(passes.n_obs.sum()))
+    out = {}
+    for k, gain in sorted(zip(others, found), key=lambda kv: -kv[1]):
+        i, j = engine.positions[k]
+        eq = engine.full.equations[i]
+        if gain > limit and len(out.get(eq.lhs, [])) < PER_EQUATION:
+            out.setdefault(eq.lhs, []).append(eq.terms[j].name)
+    return out
