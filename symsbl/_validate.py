@@ -336,7 +336,9 @@ def _band(model, system, data, kw, n_band, seed):
     n = runs.shape[1] if runs.ndim == 3 else 0
     if n < 2:
         return None, n
-    mu, sd = runs.mean(axis=1), runs.std(axis=1, ddof=1)
+    mu = runs.sum(axis=1) / n  # numpy's mean/std over the middle axis took 3x longer than the simulation
+    dev = runs - mu[:, None]
+    sd = np.sqrt(np.einsum("ndk,ndk->nk", dev, dev) / (n - 1))
     return (mu - 3 * sd, mu + 3 * sd), n
 
 

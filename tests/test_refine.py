@@ -299,6 +299,23 @@ def test_a_displacement_only_record_with_light_damping_finds_the_term_the_equati
     _check(oe, truth, check)
 
 
+def test_a_free_decay_recorded_by_displacement_only():
+    """No input, only x1 of a hardening oscillator released from 20 mm: the equation error on the
+    differentiated velocity finds no damping; rounds of output-error screening and selection find it."""
+    x1, x2 = symbols("x1 x2")
+    system = OdeSystem((x1, x2), (), (x2, -4.0 * x2 - 900.0 * x1 - 3e6 * x1**3), name="decay")
+    record = simulate(system, time_grid(3.0, 1000), x0=[0.02, 0.0]).with_noise(0.005, seed=2)
+    y = Trajectory(record.t, record.states[:, :1], None, ("x1",), ())
+    library = symsbl.paper([x1, x2], [], degree=3)
+    kw = dict(states=["x1", "x2"], kinematics={"x1": "x2"})
+    assert "x2" not in identify(y, library, refine=False, **kw).equation("x2").names  # no damping
+    model = identify(y, library, **kw)
+    truth = symsbl.compare_to_truth(model, system)
+    assert truth.exact_support, str(model)
+    assert truth.max_error() < 0.005, truth.relative_error
+    assert model.metadata["refine"]["rounds"] >= 2
+
+
 # ---------------------------------------------------------------------------- contract
 
 

@@ -236,6 +236,35 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     clock = stopwatch()
     used, note = _windows(records, max_samples)
     settings = Settings(interpolation=interpolation, substeps=substeps, smooth=smooth, jit=jit)
+    screening = select and library is not None and bool(set(model.state_names) - set(measured))
+    refined, screened = _refine_once(model, used, measured, settings, select, library, screening)
+    rounds, seen, proposed = 1, {_structure(model)}, [screened]
+    while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
+        # the screen scored its candidates at the equation-error structure; from the new one it may see others
+        seen.add(_structure(refined))
+        refined, screened = _refine_once(refined, used, measured, settings, select, library, screening)
+        proposed.append(screened)
+        rounds += 1
+    meta = refined.metadata["refine"]
+    meta.update(samples=note, interpolation=interpolation, smoothed_sign=smooth, rounds=rounds,
+                screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
+                          for lhs in dict.fromkeys(k for p in proposed for k in p)},
+                seconds=round(clock(), 3))
+    return refined
+
+
+#: Rounds of screening and selection at most when a state is not measured.
+MAX_ROUNDS = 3
+
+
+def _structure(model: IdentifiedModel) -> tuple:
+    return tuple(tuple(sorted(eq.names)) for eq in model.equations)
+
+
+def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Library | None,
+                 screening: bool):
+    """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
+    screen proposed."""
     candidates = _candidates(model, library) if select else {}
     engine = Engine(model, used, measured, settings, candidates)
     alpha = _prior(engine)
@@ -249,19 +278,17 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
             n_obs = int(sum(r.n_samples for r in used)) * len(measured)
             n_candidates = len(library) if library is not None else max(engine.base.size, 2)
             cost = penalty(n_obs, n_candidates)
-            if library is not None and set(model.state_names) - set(measured):
-                # a state estimated, not measured, may have hidden a term from the equation error
+            if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
-                                  sol, engine, library, lambda n: penalty(n, n_candidates))
+                                        sol, engine, library, lambda n: penalty(n, n_candidates))
                 engine, sol, alpha = _extend(engine, sol, alpha, candidates, screened, library)
             sol = _select(engine, sol, alpha, cost)
-        bar.update()
+            bar.update()
     info = {"refine": {
-        "samples": note, "interpolation": interpolation, "substeps": engine.substeps, "smoothed_sign": smooth,
-        "segment_length": int(sol.length), "stages": sol.stages, "passes": int(sol.n_pass),
-        "log_evidence": float(sol.posterior.log_evidence), "screened": screened, "seconds": round(clock(), 3)}}
-    return to_model(engine, sol, info)
+        "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,
+        "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened}}
+    return to_model(engine, sol, info), screened
 
 
 def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, options: dict | None = None,
