@@ -15,6 +15,7 @@ import json
 import os
 import runpy
 import sys
+import warnings
 from pathlib import Path
 
 from ._errors import LibraryError, MissingExtraError, SymsblError, expected
@@ -310,6 +311,13 @@ def _fail(command: str, message: str, code: int) -> int:
     return code
 
 
+def _warning_line(command: str):
+    """Warnings as one line on standard error, like errors: ``symsbl <command>: warning: <message>``."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"symsbl {command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``symsbl`` console script; returns the exit code (see :data:`EXIT_CODES`)."""
     parser = build_parser()
@@ -320,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return _fail("", "interrupted", 130)
     try:
-        with progress_enabled(False) if args.quiet else contextlib.nullcontext():
+        with progress_enabled(False) if args.quiet else contextlib.nullcontext(), warnings.catch_warnings():
+            warnings.showwarning = _warning_line(args.command)
             return args.func(args)
     except (SymsblError, MissingExtraError) as exc:
         return _fail(args.command, " ".join(str(exc).split()), 2)

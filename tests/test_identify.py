@@ -6,9 +6,11 @@ from helpers import exactly
 
 from symsbl import (
     DataError,
+    FitMethod,
     Library,
     LibraryError,
     Multisine,
+    RefineWarning,
     Sine,
     Trajectory,
     identify,
@@ -164,3 +166,19 @@ def test_emps_slice_identifies_the_published_inverse_model_within_its_posterior(
     for term in eq.terms:
         assert abs(term.coef - expected[term.name]) < 3 * term.std, (term.name, term.coef, term.std)
         assert term.coef == pytest.approx(expected[term.name], rel=0.03), term.name
+
+
+def test_emps_slice_by_displacement_only_warns_that_the_output_error_residual_is_correlated():
+    """The same closed-loop record identified the way a new user would, displacement only with the Eq. 21
+    library and the default refinement: a free-run simulation of the force cannot follow a closed loop,
+    and refinement says so (its residual's effective sample fraction is far below 1) instead of passing
+    over-confident coefficients as a result."""
+    from pathlib import Path
+
+    d = np.load(Path(__file__).parent / "data" / "emps_slice.npz")
+    record = Trajectory(d["t"], d["qm"][:, None], d["tau"].astype(float)[:, None], ("q",), ("tau",))
+    q, v, tau = symbols("q v tau")
+    with pytest.warns(RefineWarning, match="residual is strongly correlated"):
+        model = identify(record, paper([q, v], [tau], degree=2), states=["q", "v"], kinematics={"q": "v"})
+    assert model.fit is FitMethod.OUTPUT_ERROR
+    assert model.metadata["refine"]["effective_fraction"] < 0.1

@@ -4,6 +4,7 @@ reduction against refits, and identification scenarios the equation error alone 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import casadi as ca
@@ -314,6 +315,21 @@ def test_a_free_decay_recorded_by_displacement_only():
     assert truth.exact_support, str(model)
     assert truth.max_error() < 0.005, truth.relative_error
     assert model.metadata["refine"]["rounds"] >= 2
+
+
+def test_a_constant_with_look_alikes_gets_a_prior():
+    """An offset the equation error found indistinguishable from cos(x1) (a small swing): the look-alike's
+    prior is scaled by the spread of its twin, which a constant does not have (this overflowed once)."""
+    model, record = _refined(5)
+    x1, x2, F = symbols("x1 x2 F")
+    eq = model.equation("x2")
+    offset = symsbl.TermEstimate(expr=ca.SX(1.0), coef=0.0, std=np.nan, alpha=1.0, alternatives=("cos(x1)",))
+    start = dataclasses.replace(model, equations=(model.equations[0], dataclasses.replace(
+        eq, terms=eq.terms + (offset,), covariance=np.zeros((len(eq.terms) + 1,) * 2))), joint_covariance=None)
+    library = symsbl.polynomial([x1, x2], 3) + symsbl.elementwise([x1], ["cos"]) + symsbl.inputs([F])
+    refined = refine(start, record, library=library)
+    assert refined.fit is symsbl.FitMethod.OUTPUT_ERROR
+    assert "1" not in refined.equation("x2").names  # no offset in the data: the evidence drops it
 
 
 # ---------------------------------------------------------------------------- contract

@@ -21,11 +21,13 @@ import dataclasses
 import inspect
 import warnings
 
+import casadi as ca
 import numpy as np
 
 from .._checks import choice, integer
+from .._discrepancy.locate import effective_fraction
 from .._errors import ParameterError, RefineWarning, SimulationError, expected
-from .._library import Library
+from .._library import Library, Term
 from .._model import IdentifiedModel
 from .._progress import Progress
 from .._trajectory import Trajectory
@@ -47,7 +49,31 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
     return [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan], note
 
 
-def _candidates(model: IdentifiedModel, library: Library | None) -> dict:
+class _Rebased:
+    """A library's terms written in a model's own symbols (matched by name), as far as refinement reads it."""
+
+    def __init__(self, library: Library, model: IdentifiedModel):
+        own = {s.name(): s for s in model.states + model.inputs}
+        names = library.variable_names
+        missing = [n for n in names if n not in own]
+        if missing:
+            raise ParameterError(expected("library", f"terms of the model's states and inputs {list(own)}",
+                                          f"terms of {missing}", raw=True))
+        old, new = ca.vertcat(*library.variables), ca.vertcat(*(own[n] for n in names))
+        self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in library.terms)
+        self._by_name = {t.name: t for t in self.terms}
+
+    def __len__(self) -> int:
+        return len(self.terms)
+
+    def __contains__(self, name) -> bool:
+        return name in self._by_name
+
+    def __getitem__(self, name: str) -> Term:
+        return self._by_name[name]
+
+
+def _candidates(model: IdentifiedModel, library: _Rebased | None) -> dict:
     """Terms to try in each equation: the equation-error runners-up and indistinguishables (at most 4)."""
     if library is None:
         return {}
@@ -65,8 +91,6 @@ def _candidates(model: IdentifiedModel, library: Library | None) -> dict:
 
 def _term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
     """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
-    import casadi as ca
-
     z = ca.vertcat(*model.states, *model.inputs)
     f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
     return np.asarray(f.map(Z.shape[0])(Z.T)).T
@@ -96,10 +120,11 @@ def _prior(engine: Engine) -> np.ndarray:
                 continue
             s = float(np.std(D[:, k]))
             twin = next((j for j, u in enumerate(eq.terms) if t.name in u.alternatives), None)
-            if twin is not None and s > 0:  # an indistinguishable alternative: the same prior on its contribution
-                alpha.append(_own_alpha(eq.terms[twin]) * (s / max(float(np.std(D[:, twin])), 1e-300)) ** 2)
-            else:
-                alpha.append((s / max(scale, 1e-300)) ** 2 if s > 0 else 1.0)
+            s_twin = float(np.std(D[:, twin])) if twin is not None else 0.0
+            if s > 0 and s_twin > 0:  # an indistinguishable alternative: the same prior on its contribution
+                alpha.append(_own_alpha(eq.terms[twin]) * (s / s_twin) ** 2)
+            else:  # (a constant's twin has no spread to compare with)
+                alpha.append((s / scale) ** 2 if s > 0 and scale > 0 else 1.0)
     return np.array(alpha)
 
 
@@ -107,7 +132,7 @@ def _own_alpha(term) -> float:
     return term.alpha if np.isfinite(term.alpha) and term.alpha > 0 else 1.0 / max(term.coef**2, 1e-300)
 
 
-def _extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: dict, library: Library):
+def _extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: dict, library: _Rebased):
     """The engine, solution and prior precisions with the screened terms added to the candidates (held at zero
     in the solution); unchanged when the screen found nothing new."""
     merged = {lhs: list(c) for lhs, c in candidates.items()}
@@ -236,6 +261,10 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     clock = stopwatch()
     used, note = _windows(records, max_samples)
     settings = Settings(interpolation=interpolation, substeps=substeps, smooth=smooth, jit=jit)
+    if library is not None:
+        if not isinstance(library, Library):
+            raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
+        library = _Rebased(library, model)
     screening = select and library is not None and bool(set(model.state_names) - set(measured))
     refined, screened = _refine_once(model, used, measured, settings, select, library, screening)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
@@ -250,7 +279,17 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
+    if meta["effective_fraction"] < LOW_FRACTION:
+        warnings.warn(RefineWarning(
+            f"output-error refinement: the residual is strongly correlated (N_eff/N = {meta['effective_fraction']:.3g}): "
+            "the model misses part of the record's dynamics (or the record is closed-loop, where an inverse model "
+            "fits better); term selection was made stricter by that factor, and the posterior standard deviations, "
+            "which assume white residuals, are too small"), stacklevel=2)
     return refined
+
+
+#: ``N_eff / N`` of the output-error residual below which :func:`refine` warns.
+LOW_FRACTION = 0.1
 
 
 #: Rounds of screening and selection at most when a state is not measured.
@@ -261,7 +300,7 @@ def _structure(model: IdentifiedModel) -> tuple:
     return tuple(tuple(sorted(eq.names)) for eq in model.equations)
 
 
-def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Library | None,
+def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: _Rebased | None,
                  screening: bool):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed."""
@@ -274,21 +313,38 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
     with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
+        fraction = _effective_fraction(engine, sol)
         if select:
             n_obs = int(sum(r.n_samples for r in used)) * len(measured)
             n_candidates = len(library) if library is not None else max(engine.base.size, 2)
-            cost = penalty(n_obs, n_candidates)
+            # correlated residuals (unmodelled dynamics, a closed loop) carry fewer independent samples
+            # than they count: each term must then earn proportionally more
+            cost = penalty(n_obs, n_candidates) / fraction
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
-                                        sol, engine, library, lambda n: penalty(n, n_candidates))
+                                        sol, engine, library, lambda n: penalty(n, n_candidates) / fraction)
                 engine, sol, alpha = _extend(engine, sol, alpha, candidates, screened, library)
             sol = _select(engine, sol, alpha, cost)
             bar.update()
     info = {"refine": {
         "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,
-        "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened}}
+        "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
+        "effective_fraction": round(fraction, 4)}}
     return to_model(engine, sol, info), screened
+
+
+def _effective_fraction(engine: Engine, sol) -> float:
+    """``N_eff / N`` of the output-error residual at the fit (the smallest over the measured channels; 1 for
+    white residuals), from its autocorrelation as in the discrepancy workflow."""
+    passes = engine.passes
+    passes.use_segments(sol.starts)
+    n = passes.records.n_total
+    with np.errstate(all="ignore"):
+        R = passes.records.Y - passes.simulate(sol.theta, sol.X0)[:, list(passes.records.measured)]
+    valid = passes.valid[:n] & np.isfinite(R)
+    fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
+    return max(min(fractions, default=1.0), 1e-3)
 
 
 def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, options: dict | None = None,
