@@ -1,8 +1,8 @@
 """symsbl.RVM as pysindy's optimizer: a pysindy pipeline keeps its derivatives and library and
 gets the RVM's selection through pysindy's own wrapper for scikit-learn regressors.
 
-pysindy is not a dependency of symsbl (only of the ``bench`` extra); these tests run where it is
-installed.
+pysindy is not a dependency of symsbl (only of the ``dev`` and ``bench`` extras); these tests run where
+it is installed.
 """
 
 import numpy as np
@@ -11,7 +11,7 @@ import pytest
 import symsbl
 
 ps = pytest.importorskip(
-    "pysindy", reason="pysindy is not installed (pip install '.[bench]'); the RVM-in-pysindy tests need it"
+    "pysindy", reason="pysindy is not installed (pip install '.[dev]'); the RVM-in-pysindy tests need it"
 )
 
 pytestmark = [
