@@ -11,8 +11,12 @@ error of the *measured* states, each weighted by its own noise level, on one or 
   the segment length (multiple shooting without continuity constraints, merged until one segment
   spans each record);
 - :mod:`.laplace`: posterior, evidence, prior precisions, Bayesian model reduction;
+- :mod:`.candidates`: what the selection tries (the equation-error runners-up and look-alikes) and
+  the prior of each;
+- :mod:`.screen`: library terms scored by the output error when a state is not measured;
 - :mod:`.selection`: term selection on the output-error evidence;
-- :mod:`.engine`: one fit of one structure, and the refined model.
+- :mod:`.engine`: one fit of one structure, and the refined model;
+- :mod:`.initial`: initial states for validation.
 """
 
 from __future__ import annotations
@@ -21,21 +25,20 @@ import dataclasses
 import inspect
 import warnings
 
-import casadi as ca
 import numpy as np
 
 from .._checks import choice, integer
 from .._discrepancy.locate import effective_fraction
 from .._errors import ParameterError, RefineWarning, SimulationError, expected
-from .._library import Library, Term
+from .._library import Library
 from .._model import IdentifiedModel
 from .._progress import Progress
 from .._trajectory import Trajectory
+from .candidates import Rebased, candidates as propose, extend, prior
 from .engine import Engine, Settings, stopwatch, to_model
-from .laplace import reduce_model, reprior
 from .problem import INTERPOLATIONS, check_records, window_plan
 from .screen import screen_terms
-from .selection import backward, penalty
+from .selection import penalty, select as select_terms
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
 
@@ -47,138 +50,6 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
     """The records, or evenly spaced windows of them totalling about ``max_samples`` samples."""
     plan, note = window_plan([r.n_samples for r in records], max_samples)
     return [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan], note
-
-
-class _Rebased:
-    """A library's terms written in a model's own symbols (matched by name), as far as refinement reads it."""
-
-    def __init__(self, library: Library, model: IdentifiedModel):
-        own = {s.name(): s for s in model.states + model.inputs}
-        names = library.variable_names
-        missing = [n for n in names if n not in own]
-        if missing:
-            raise ParameterError(expected("library", f"terms of the model's states and inputs {list(own)}",
-                                          f"terms of {missing}", raw=True))
-        old, new = ca.vertcat(*library.variables), ca.vertcat(*(own[n] for n in names))
-        self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in library.terms)
-        self._by_name = {t.name: t for t in self.terms}
-
-    def __len__(self) -> int:
-        return len(self.terms)
-
-    def __contains__(self, name) -> bool:
-        return name in self._by_name
-
-    def __getitem__(self, name: str) -> Term:
-        return self._by_name[name]
-
-
-def _candidates(model: IdentifiedModel, library: _Rebased | None) -> dict:
-    """Terms to try in each equation: the equation-error runners-up and indistinguishables (at most 4)."""
-    if library is None:
-        return {}
-    out = {}
-    for eq in model.equations:
-        if eq.fixed:
-            continue
-        names = [n for t in eq.terms for n in t.alternatives] + list(eq.runners_up)
-        present = set(eq.names)
-        exprs = [library[n].expr for n in dict.fromkeys(names) if n in library and n not in present]
-        if exprs:
-            out[eq.lhs] = [(e, 0.0) for e in exprs[:4]]
-    return out
-
-
-def _term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
-    """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
-    z = ca.vertcat(*model.states, *model.inputs)
-    f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
-    return np.asarray(f.map(Z.shape[0])(Z.T)).T
-
-
-def _prior(engine: Engine) -> np.ndarray:
-    """Prior precisions of every coefficient of the compiled structure: the model's own (the relevance
-    vector machine's, else ``1 / coef^2``); for an alternative the equation-error fit found
-    indistinguishable from a term, that term's prior on the same contribution; for another candidate
-    ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
-    model = engine.model
-    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
-         else np.zeros((r.n_samples, 0)) for r in engine.records]
-    Z = np.column_stack([engine.guess, np.vstack(U)])
-    Z = Z[:: max(1, len(Z) // 20000)]
-    alpha = []
-    for eq, full in zip(model.equations, engine.full.equations):
-        if full.fixed:
-            continue
-        D = _term_values([t.expr for t in full.terms], model, Z)
-        scale = float(np.std(D[:, :len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
-        for k, t in enumerate(full.terms):
-            if t.fixed:
-                continue
-            if k < len(eq.terms):
-                alpha.append(_own_alpha(t))
-                continue
-            s = float(np.std(D[:, k]))
-            twin = next((j for j, u in enumerate(eq.terms) if t.name in u.alternatives), None)
-            s_twin = float(np.std(D[:, twin])) if twin is not None else 0.0
-            if s > 0 and s_twin > 0:  # an indistinguishable alternative: the same prior on its contribution
-                alpha.append(_own_alpha(eq.terms[twin]) * (s / s_twin) ** 2)
-            else:  # (a constant's twin has no spread to compare with)
-                alpha.append((s / scale) ** 2 if s > 0 and scale > 0 else 1.0)
-    return np.array(alpha)
-
-
-def _own_alpha(term) -> float:
-    return term.alpha if np.isfinite(term.alpha) and term.alpha > 0 else 1.0 / max(term.coef**2, 1e-300)
-
-
-def _extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: dict, library: _Rebased):
-    """The engine, solution and prior precisions with the screened terms added to the candidates (held at zero
-    in the solution); unchanged when the screen found nothing new."""
-    merged = {lhs: list(c) for lhs, c in candidates.items()}
-    new = False
-    for lhs, names in screened.items():
-        have = {str(e) for e, _ in merged.get(lhs, [])}
-        for name in names:
-            expr = library[name].expr
-            if str(expr) not in have:
-                merged.setdefault(lhs, []).append((expr, 0.0))
-                new = True
-    if not new:
-        return engine, sol, alpha
-    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged)
-    alpha = _prior(wider)
-    theta = np.zeros(len(wider.positions))
-    theta[wider.base] = sol.theta[engine.base]
-    fitted_alpha = alpha.copy()
-    fitted_alpha[wider.base] = sol.alpha[engine.base]
-    return wider, dataclasses.replace(sol, theta=theta, alpha=fitted_alpha, active=wider.base), alpha
-
-
-def _objective(sol, cost_per_term: float) -> float:
-    return sol.posterior.log_evidence - cost_per_term * sol.active.size
-
-
-def _select(engine: Engine, first, alpha: np.ndarray, cost: float):
-    """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
-    the model extended by its candidates, confirmed by a refit."""
-    every = np.arange(len(engine.positions))
-    sol = first
-    if every.size > engine.base.size:
-        sol = engine.fit(every, first.theta, alpha, warm=first)
-    keys = [engine.keys[k] for k in sol.active]
-    # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
-    # near-equivalent terms unevenly and would decide between them by that split
-    post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
-    removed = backward(post, alpha[sol.active], cost, keys)
-    chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
-    if set(chosen) == set(engine.base):
-        return first
-    _, mean, _ = reduce_model(post, alpha[sol.active], removed) if removed else (0, post.mean, 0)
-    start = np.zeros_like(sol.theta)
-    start[chosen] = mean if removed else sol.theta[chosen]
-    refit = engine.fit(chosen, start, sol.alpha, warm=sol)
-    return refit if _objective(refit, cost) > _objective(first, cost) else first
 
 
 def refine(model: IdentifiedModel, data, *, measured=None, library: Library | None = None, select: bool = True,
@@ -264,7 +135,7 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     if library is not None:
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
-        library = _Rebased(library, model)
+        library = Rebased(library, model)
     screening = select and library is not None and bool(set(model.state_names) - set(measured))
     refined, screened = _refine_once(model, used, measured, settings, select, library, screening)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
@@ -300,13 +171,13 @@ def _structure(model: IdentifiedModel) -> tuple:
     return tuple(tuple(sorted(eq.names)) for eq in model.equations)
 
 
-def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: _Rebased | None,
+def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Rebased | None,
                  screening: bool):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed."""
-    candidates = _candidates(model, library) if select else {}
+    candidates = propose(model, library) if select else {}
     engine = Engine(model, used, measured, settings, candidates)
-    alpha = _prior(engine)
+    alpha = prior(engine)
     theta0 = np.zeros(len(engine.positions))
     theta0[engine.base] = engine.param.theta0[engine.base]
     screened = {}
@@ -324,8 +195,8 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
                                         sol, engine, library, lambda n: penalty(n, n_candidates) / fraction)
-                engine, sol, alpha = _extend(engine, sol, alpha, candidates, screened, library)
-            sol = _select(engine, sol, alpha, cost)
+                engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
+            sol = select_terms(engine, sol, alpha, cost)
             bar.update()
     info = {"refine": {
         "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,

@@ -11,13 +11,17 @@ it settles on is then refitted, and kept only if the refit confirms the gain.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .._model import Equation, IdentifiedModel, TermEstimate
-from .laplace import reduce_model
+from .laplace import reduce_model, reprior
 
-__all__ = ["penalty", "backward", "with_terms", "without_terms", "free_positions"]
+if TYPE_CHECKING:  # the engine builds on this module
+    from .engine import Engine
+
+__all__ = ["penalty", "backward", "select", "objective", "with_terms", "without_terms", "free_positions"]
 
 
 def penalty(n_obs: int, n_candidates: int) -> float:
@@ -82,3 +86,29 @@ def with_terms(model: IdentifiedModel, additions: dict) -> IdentifiedModel:
         equations.append(Equation(eq.lhs, terms, cov, eq.noise_var, eq.log_evidence, eq.n_rows,
                                   runners_up=eq.runners_up))
     return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)
+
+
+def objective(sol, cost_per_term: float) -> float:
+    return sol.posterior.log_evidence - cost_per_term * sol.active.size
+
+
+def select(engine: Engine, first, alpha: np.ndarray, cost: float):
+    """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
+    the model extended by its candidates, confirmed by a refit."""
+    every = np.arange(len(engine.positions))
+    sol = first
+    if every.size > engine.base.size:
+        sol = engine.fit(every, first.theta, alpha, warm=first)
+    keys = [engine.keys[k] for k in sol.active]
+    # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
+    # near-equivalent terms unevenly and would decide between them by that split
+    post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
+    removed = backward(post, alpha[sol.active], cost, keys)
+    chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
+    if set(chosen) == set(engine.base):
+        return first
+    _, mean, _ = reduce_model(post, alpha[sol.active], removed) if removed else (0, post.mean, 0)
+    start = np.zeros_like(sol.theta)
+    start[chosen] = mean if removed else sol.theta[chosen]
+    refit = engine.fit(chosen, start, sol.alpha, warm=sol)
+    return refit if objective(refit, cost) > objective(first, cost) else first

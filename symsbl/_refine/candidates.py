@@ -1,0 +1,127 @@
+"""What the output-error selection tries, and with which prior.
+
+- :class:`Rebased`: the candidate library written in the model's own symbols;
+- :func:`candidates`: per equation, the equation-error runners-up and indistinguishable terms;
+- :func:`prior`: prior precisions of every coefficient of a compiled structure;
+- :func:`extend`: a structure widened by terms the output-error screen proposed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import casadi as ca
+import numpy as np
+
+from .._errors import ParameterError, expected
+from .._library import Library, Term
+from .._model import IdentifiedModel
+from .engine import Engine
+
+__all__ = ["Rebased", "candidates", "prior", "extend"]
+
+
+class Rebased:
+    """A library's terms written in a model's own symbols (matched by name), as far as refinement reads it."""
+
+    def __init__(self, library: Library, model: IdentifiedModel):
+        own = {s.name(): s for s in model.states + model.inputs}
+        names = library.variable_names
+        missing = [n for n in names if n not in own]
+        if missing:
+            raise ParameterError(expected("library", f"terms of the model's states and inputs {list(own)}",
+                                          f"terms of {missing}", raw=True))
+        old, new = ca.vertcat(*library.variables), ca.vertcat(*(own[n] for n in names))
+        self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in library.terms)
+        self._by_name = {t.name: t for t in self.terms}
+
+    def __len__(self) -> int:
+        return len(self.terms)
+
+    def __contains__(self, name) -> bool:
+        return name in self._by_name
+
+    def __getitem__(self, name: str) -> Term:
+        return self._by_name[name]
+
+
+def candidates(model: IdentifiedModel, library: Rebased | None) -> dict:
+    """Terms to try in each equation: the equation-error runners-up and indistinguishables (at most 4)."""
+    if library is None:
+        return {}
+    out = {}
+    for eq in model.equations:
+        if eq.fixed:
+            continue
+        names = [n for t in eq.terms for n in t.alternatives] + list(eq.runners_up)
+        present = set(eq.names)
+        exprs = [library[n].expr for n in dict.fromkeys(names) if n in library and n not in present]
+        if exprs:
+            out[eq.lhs] = [(e, 0.0) for e in exprs[:4]]
+    return out
+
+
+def term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
+    """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
+    z = ca.vertcat(*model.states, *model.inputs)
+    f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
+    return np.asarray(f.map(Z.shape[0])(Z.T)).T
+
+
+def prior(engine: Engine) -> np.ndarray:
+    """Prior precisions of every coefficient of the compiled structure: the model's own (the relevance
+    vector machine's, else ``1 / coef^2``); for an alternative the equation-error fit found
+    indistinguishable from a term, that term's prior on the same contribution; for another candidate
+    ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
+    model = engine.model
+    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
+         else np.zeros((r.n_samples, 0)) for r in engine.records]
+    Z = np.column_stack([engine.guess, np.vstack(U)])
+    Z = Z[:: max(1, len(Z) // 20000)]
+    alpha = []
+    for eq, full in zip(model.equations, engine.full.equations):
+        if full.fixed:
+            continue
+        D = term_values([t.expr for t in full.terms], model, Z)
+        scale = float(np.std(D[:, :len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
+        for k, t in enumerate(full.terms):
+            if t.fixed:
+                continue
+            if k < len(eq.terms):
+                alpha.append(own_alpha(t))
+                continue
+            s = float(np.std(D[:, k]))
+            twin = next((j for j, u in enumerate(eq.terms) if t.name in u.alternatives), None)
+            s_twin = float(np.std(D[:, twin])) if twin is not None else 0.0
+            if s > 0 and s_twin > 0:  # an indistinguishable alternative: the same prior on its contribution
+                alpha.append(own_alpha(eq.terms[twin]) * (s / s_twin) ** 2)
+            else:  # (a constant's twin has no spread to compare with)
+                alpha.append((s / scale) ** 2 if s > 0 and scale > 0 else 1.0)
+    return np.array(alpha)
+
+
+def own_alpha(term) -> float:
+    return term.alpha if np.isfinite(term.alpha) and term.alpha > 0 else 1.0 / max(term.coef**2, 1e-300)
+
+
+def extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: dict, library: Rebased):
+    """The engine, solution and prior precisions with the screened terms added to the candidates (held at zero
+    in the solution); unchanged when the screen found nothing new."""
+    merged = {lhs: list(c) for lhs, c in candidates.items()}
+    new = False
+    for lhs, names in screened.items():
+        have = {str(e) for e, _ in merged.get(lhs, [])}
+        for name in names:
+            expr = library[name].expr
+            if str(expr) not in have:
+                merged.setdefault(lhs, []).append((expr, 0.0))
+                new = True
+    if not new:
+        return engine, sol, alpha
+    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged)
+    alpha = prior(wider)
+    theta = np.zeros(len(wider.positions))
+    theta[wider.base] = sol.theta[engine.base]
+    fitted_alpha = alpha.copy()
+    fitted_alpha[wider.base] = sol.alpha[engine.base]
+    return wider, dataclasses.replace(sol, theta=theta, alpha=fitted_alpha, active=wider.base), alpha
