@@ -332,6 +332,26 @@ def test_a_constant_with_look_alikes_gets_a_prior():
     assert "1" not in refined.equation("x2").names  # no offset in the data: the evidence drops it
 
 
+def test_a_model_that_diverges_on_the_record_falls_back_to_the_equation_error_with_a_warning():
+    """A starting model whose cubic spring has the wrong size by three orders and the wrong sign runs away
+    within the first segments: refine() raises a one-line SimulationError, and the path identify takes
+    warns with a RefineWarning and returns the starting model, saying why in its metadata."""
+    from symsbl._refine import refine_or_keep
+
+    model, record = _refined(7)
+    eq = model.equation("x2")
+    terms = tuple(dataclasses.replace(t, coef=1e12) if t.name == "x1**3" else t for t in eq.terms)
+    bad = dataclasses.replace(model, equations=(model.equations[0], dataclasses.replace(eq, terms=terms)),
+                              fit=symsbl.FitMethod.EQUATION_ERROR, joint_covariance=None)
+    with pytest.raises(symsbl.SimulationError, match="the model diverges on this record") as info:
+        refine(bad, record)
+    assert "\n" not in str(info.value)
+    with pytest.warns(symsbl.RefineWarning, match="the equation-error model stands"):
+        kept = refine_or_keep(bad, [record], library=_library())
+    assert kept.fit is symsbl.FitMethod.EQUATION_ERROR and kept.equation("x2").coef("x1**3") == 1e12
+    assert "diverges" in kept.metadata["refine"]["failed"]
+
+
 # ---------------------------------------------------------------------------- contract
 
 

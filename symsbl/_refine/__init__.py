@@ -231,7 +231,7 @@ def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, 
         raise ParameterError(expected("refine_options", f"a dict with keys among {allowed}", options))
     try:
         refined = refine(model, records, library=library, **options)
-    except SimulationError as error:
+    except (SimulationError, np.linalg.LinAlgError) as error:  # numerical failure: the equation error stands
         warnings.warn(str(error), RefineWarning, stacklevel=3)
         return dataclasses.replace(model, metadata=dict(model.metadata, refine={"failed": str(error)}))
     if note is None:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .._errors import SimulationError, expected
 from .laplace import Posterior, mackay_fixed_point, posterior
 from .sensitivity import Passes
 
@@ -268,6 +269,10 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         X0 = X0[np.searchsorted(passes.starts, new_starts)]
         passes.use_segments(new_starts)
         length = new_length
+    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(H))):
+        raise SimulationError(expected("output-error refinement", "a simulation that stays finite",
+                                       "non-finite states or sensitivities (the model diverges on this record)",
+                                       "the equation-error model stands", raw=True))
     if mackay:
         alpha = _prior_precisions(H, theta, alpha, active)
         theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol)
