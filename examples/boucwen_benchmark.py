@@ -20,6 +20,7 @@ Data: ``shared/data/BoucWen`` next to this repository (training: 5 steady-state 
 
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import casadi as ca
@@ -64,12 +65,16 @@ libraries = {
 errors = {}
 models = {}
 for name, library in libraries.items():
-    model = symsbl.identify(train, library)
+    with warnings.catch_warnings(record=True) as caught:  # the refinement's own verdict on the model
+        warnings.simplefilter("always", symsbl.RefineWarning)
+        model = symsbl.identify(train, library)
     check = symsbl.validate_model(model, test, method="rk4", substeps=4)
     models[name], errors[name] = model, check.nrmse["y"]
     rmse = np.sqrt(np.mean((check.simulated.column("y") - y_val) ** 2)) if check.status == "ok" else np.inf
     print(f"-- {name} model of [y, y'] ({len(library)} candidates)")
     print(model)
+    print(f"residual's effective sample fraction: {model.metadata['refine']['effective_fraction']:.3g}"
+          + "".join(f"\nrefinement warns: {w.message}" for w in caught))
     print(f"test multisine: NRMSE(y) = {100 * check.nrmse['y']:.1f} %, RMSE(y) = {rmse:.3g} m\n")
 
 # What the linear model's coefficients mean, against the published parameters.

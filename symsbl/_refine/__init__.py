@@ -184,20 +184,20 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
     with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
-        fraction = _effective_fraction(engine, sol)
         if select:
             n_obs = int(sum(r.n_samples for r in used)) * len(measured)
             n_candidates = len(library) if library is not None else max(engine.base.size, 2)
-            # correlated residuals (unmodelled dynamics, a closed loop) carry fewer independent samples
-            # than they count: each term must then earn proportionally more
-            cost = penalty(n_obs, n_candidates) / fraction
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
-                                        sol, engine, library, lambda n: penalty(n, n_candidates) / fraction)
+                                        sol, engine, library, lambda n: penalty(n, n_candidates))
                 engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
-            sol = select_terms(engine, sol, alpha, cost)
+            # a residual still correlated with every candidate in (unmodelled dynamics, a closed loop) carries
+            # fewer independent samples than it counts: each term must then earn proportionally more
+            sol = select_terms(engine, sol, alpha,
+                               lambda wide: penalty(n_obs, n_candidates) / _effective_fraction(engine, wide))
             bar.update()
+        fraction = _effective_fraction(engine, sol)
     info = {"refine": {
         "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,

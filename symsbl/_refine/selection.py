@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .._errors import SimulationError
 from .._model import Equation, IdentifiedModel, TermEstimate
 from .laplace import reduce_model, reprior
 
@@ -92,13 +93,18 @@ def objective(sol, cost_per_term: float) -> float:
     return sol.posterior.log_evidence - cost_per_term * sol.active.size
 
 
-def select(engine: Engine, first, alpha: np.ndarray, cost: float):
+def select(engine: Engine, first, alpha: np.ndarray, cost_of):
     """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
-    the model extended by its candidates, confirmed by a refit."""
+    the model extended by its candidates, confirmed by a refit. ``cost_of(fit)`` gives the nats per term
+    from the extended fit (whose residual says how much structure no candidate explains)."""
     every = np.arange(len(engine.positions))
     sol = first
     if every.size > engine.base.size:
-        sol = engine.fit(every, first.theta, alpha, warm=first)
+        try:
+            sol = engine.fit(every, first.theta, alpha, warm=first)
+        except SimulationError:  # a candidate that makes the model run away: keep the fitted structure
+            return first
+    cost = cost_of(sol)
     keys = [engine.keys[k] for k in sol.active]
     # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
     # near-equivalent terms unevenly and would decide between them by that split
@@ -110,5 +116,8 @@ def select(engine: Engine, first, alpha: np.ndarray, cost: float):
     _, mean, _ = reduce_model(post, alpha[sol.active], removed) if removed else (0, post.mean, 0)
     start = np.zeros_like(sol.theta)
     start[chosen] = mean if removed else sol.theta[chosen]
-    refit = engine.fit(chosen, start, sol.alpha, warm=sol)
+    try:
+        refit = engine.fit(chosen, start, sol.alpha, warm=sol)
+    except SimulationError:
+        return first
     return refit if objective(refit, cost) > objective(first, cost) else first
