@@ -250,7 +250,7 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     else:
         X0 = _first_segments(passes, theta, guess, length)
     scale = _state_scale(guess, X0)
-    stages, n_pass = [], 0
+    stages, n_pass, previous = [], 0, None
     while True:
         final = length >= full
         theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
@@ -259,8 +259,19 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         phi = _growth(end_S, theta.size, scale)
         stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
                            cost=float(0.5 * rr.sum())))
+        if phi > PHI_STOP and previous is not None:
+            # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
+            # initial states and coefficients are then nearly collinear; back to the last length that did not
+            length, starts, theta, X0 = previous
+            passes.use_segments(starts)
+            theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol, update_noise)
+            n_pass += n
+            stages.append(dict(length=length, segments=len(starts), passes=n, growth=float("nan"),
+                               cost=float(0.5 * rr.sum()), back=True))
+            break
         if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
             break
+        previous = (length, passes.starts.copy(), theta.copy(), X0.copy())
         factor = min(growth, _longest(length, phi) // length)
         if factor < 2:
             break  # longer segments would amplify the state by more than PHI_STOP: stay here
