@@ -20,6 +20,7 @@ from pathlib import Path
 
 from ._errors import LibraryError, MissingExtraError, SymsblError, expected
 from ._progress import progress_enabled
+from ._refine.problem import INTERPOLATIONS
 
 __all__ = ["main", "build_parser", "EXIT_CODES"]
 
@@ -153,7 +154,7 @@ def _cmd_identify(args) -> int:
     traj = _read(args, args.data, states, inputs, optional=_unmeasured_allowed(states, args.kinematics))
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     model = identify(traj, library, derivative=args.derivative, states=states, kinematics=args.kinematics or None,
-                     refine=not args.no_refine)
+                     refine=not args.no_refine, refine_options={"interpolation": args.interpolation})
     how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
     print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
           f"coefficients by {how}:")
@@ -173,7 +174,7 @@ def _cmd_validate(args) -> int:
     velocities = tuple(v for _, v in model.kinematics)
     traj = _read(args, args.data, model.state_names, model.input_names, optional=velocities)
     try:
-        result = validate_model(model, traj, n_band=args.band)
+        result = validate_model(model, traj, n_band=args.band, interpolation=args.interpolation)
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
     print(result.message)
@@ -249,6 +250,9 @@ def _add_identify(sub, common) -> None:
                         "absent from DATA (unmeasured), e.g. --kinematics y:v")
     p.add_argument("--no-refine", action="store_true",
                    help="stop at the equation-error fit (default: refine every coefficient by output error)")
+    p.add_argument("--interpolation", default="cubic", choices=list(INTERPOLATIONS),
+                   help="how the inputs run between samples while refining (default: cubic; hold: a digital "
+                        "controller's stepped output)")
     p.add_argument("--json", help="write the identified model as JSON to this file")
     p.set_defaults(func=_cmd_identify)
 
@@ -262,6 +266,8 @@ def _add_validate(sub, common) -> None:
     p.add_argument("--band", type=int, default=0, metavar="N",
                    help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
                         "(default: 0, no band)")
+    p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
+                   help="how the inputs run between samples (default: as the model was refined, else cubic)")
     p.add_argument("--plot", metavar="FILE", help="write the paper's Figure 2 for this record to FILE, e.g. fig.png "
                    "(needs matplotlib)")
     p.set_defaults(func=_cmd_validate)

@@ -110,10 +110,9 @@ def step_inputs(t, signals, substeps: int, n_ud: int, chunk: int) -> tuple[list[
     dt[:n_steps] = np.diff(t)
     args = [tk, dt]
     if n_ud:
-        nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(2 * substeps + 1) / (2 * substeps)
         sampled = [s for s in signals if not s.is_analytic]
         ud = np.zeros((n_pad, n_ud))
-        vals = np.stack([np.asarray(s(nodes.ravel())).reshape(nodes.size, s.n_outputs) for s in sampled], 1)
+        vals = np.stack([s.at_nodes(t, 2 * substeps + 1).reshape(-1, s.n_outputs) for s in sampled], 1)
         ud[:n_steps] = vals.reshape(n_steps, n_ud)
         args.append(ud)
     return args, n_pad

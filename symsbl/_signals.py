@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from ._errors import DataError, expected
+from ._errors import DataError, SimulationError, expected
 
 __all__ = ["Signal", "Sine", "Multisine", "Chirp", "FreeDecay", "Sampled"]
 
@@ -58,6 +58,13 @@ class Signal(abc.ABC):
     @abc.abstractmethod
     def expr(self, t: ca.SX) -> ca.SX:
         """The signal as an ``(n_outputs, 1)`` SX expression of the scalar time symbol ``t``."""
+
+    def at_nodes(self, t: np.ndarray, n_nodes: int) -> np.ndarray:
+        """The values at ``n_nodes`` equally spaced nodes of every interval of the grid ``t`` (both ends
+        included), ``(len(t) - 1, n_nodes, n_outputs)``: what fixed-step RK4 integrates."""
+        t = np.asarray(t, dtype=float)
+        nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
+        return np.asarray(self(nodes.ravel())).reshape(t.size - 1, n_nodes, self.n_outputs)
 
 
 @dataclass(frozen=True)
@@ -242,12 +249,15 @@ class Sampled(Signal):
     t : array_like, shape (n_samples,)
         Strictly increasing sample times.
     values : array_like, shape (n_samples,) or (n_samples, n_outputs)
-    kind : {"linear", "cubic", "periodic"}
+    kind : {"linear", "cubic", "periodic", "hold"}
         How the input runs between samples: held linear (the default, what a zero-phase data
         logger implies least), a not-a-knot cubic spline (error O(h^4) instead of O(h^2): use it
-        for inputs sampled a few times above their bandwidth), or band-limited periodic
+        for inputs sampled a few times above their bandwidth), band-limited periodic
         interpolation through the spectrum, exact for a periodic input sampled over whole periods
-        (the samples must hold whole periods; the value one period after the first is not repeated).
+        (the samples must hold whole periods; the value one period after the first is not repeated),
+        or a zero-order hold: each sample's value until the next sample, as a digital
+        controller's output steps (fixed-step RK4 holds it over each whole step; adaptive
+        integrators cannot take it).
 
     Notes
     -----
@@ -273,7 +283,7 @@ class Sampled(Signal):
     """
 
     is_analytic = False
-    KINDS = ("linear", "cubic", "periodic")
+    KINDS = ("linear", "cubic", "periodic", "hold")
 
     def __init__(self, t, values, kind: str = "linear"):
         if kind not in self.KINDS:
@@ -310,6 +320,8 @@ class Sampled(Signal):
             return self._cubic()(np.clip(t, self.t[0], self.t[-1]))
         if self.kind == "periodic":
             return self._periodic(t)
+        if self.kind == "hold":
+            return self.values[np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, self.t.size - 1)]
         if self.values.ndim == 1:
             return np.interp(t, self.t, self.values)
         return np.column_stack([np.interp(t, self.t, v) for v in self.values.T])
@@ -358,7 +370,20 @@ class Sampled(Signal):
                 out[start:start + part.size] = (phase @ spectrum).real / n
         return out.reshape(np.shape(t) + self.values.shape[1:])
 
+    def at_nodes(self, t: np.ndarray, n_nodes: int) -> np.ndarray:
+        """As :meth:`Signal.at_nodes`; a held input keeps each interval's own value at its right end (the
+        step there belongs to the next interval)."""
+        if self.kind != "hold":
+            return super().at_nodes(t, n_nodes)
+        t = np.asarray(t, dtype=float)
+        nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
+        nodes[:, -1] = t[:-1]
+        return np.asarray(self(nodes.ravel())).reshape(t.size - 1, n_nodes, self.n_outputs)
+
     def expr(self, t):
+        if self.kind == "hold":
+            raise SimulationError(expected("Sampled(kind='hold')", "a fixed-step integrator", "an adaptive one",
+                                           "simulate with method='rk4' (or 'auto')", raw=True))
         if self._interp is None:
             data = np.ascontiguousarray(self.values).ravel()  # sample-major, as interpolant expects
             method = "linear" if self.kind == "linear" else "bspline"

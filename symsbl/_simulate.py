@@ -201,7 +201,8 @@ def simulate(
         raise SimulationError(expected("x0", f"{system.n_states} finite values (states {list(system.state_names)})",
                                        x0))
     signals = resolve_inputs(system, t, inputs)
-    name = method if method != "auto" else ("cvodes" if system.is_continuous else "rk4")
+    held = any(getattr(sig, "kind", None) == "hold" for sig in signals)  # steps at every sample: fixed steps
+    name = method if method != "auto" else ("cvodes" if system.is_continuous and not held else "rk4")
     states, t_fail, reason = METHODS[name](
         system, t, signals, x0, rtol=rtol, atol=atol, substeps=substeps, chunk_size=chunk_size, jit=jit,
         options=options,

@@ -352,6 +352,38 @@ def test_a_model_that_diverges_on_the_record_falls_back_to_the_equation_error_wi
     assert "diverges" in kept.metadata["refine"]["failed"]
 
 
+def test_an_input_held_between_samples_is_refined_as_held():
+    """A digital controller's output: random levels held for 50 ms, sampled at 2 kHz (the data simulated
+    at 32 kHz from the held levels). A cubic spline smooths each step over one sample interval and biases
+    the coefficients by about 0.5 % and leaves a correlated residual (a warning); ``interpolation="hold"``
+    integrates the steps as they were, brings them to the 1e-3 level, the residual back to white, and
+    validation reuses it."""
+    x1, x2, F = symbols("x1 x2 F")
+    system = _oscillator(0.8, 3.0, 2e3, 3e7)
+    levels = np.random.default_rng(0).normal(0.0, 20.0, 90)
+    fine = time_grid(4.0, 32000)
+    clean = simulate(system, fine, inputs=symsbl.Sampled(fine, levels[np.arange(fine.size) // 1600], kind="hold"))
+    keep = np.arange(0, fine.size, 16)
+    record = Trajectory(clean.t[keep], clean.states[keep], clean.inputs[keep], ("x1", "x2"), ("F",)).with_noise(
+        0.01, seed=1)
+    library = symsbl.paper([x1, x2], [F], degree=3)
+    errors = {}
+    for kind in ("cubic", "hold"):
+        if kind == "cubic":  # the smoothed steps leave a correlated residual, and refinement says so
+            with pytest.warns(symsbl.RefineWarning, match="residual is strongly correlated"):
+                model = identify(record, library, refine_options={"interpolation": kind})
+        else:
+            model = identify(record, library, refine_options={"interpolation": kind})
+        truth = symsbl.compare_to_truth(model, system)
+        assert truth.exact_support, str(model)
+        errors[kind] = truth.max_error()
+    assert errors["hold"] < 2e-3 and errors["hold"] * 4 < errors["cubic"], errors
+    assert model.metadata["refine"]["effective_fraction"] > 0.5
+    assert max(symsbl.validate_model(model, record).nrmse.values()) < 0.0105  # the 1 % noise floor
+    with pytest.raises(symsbl.SimulationError, match="method='rk4'"):
+        simulate(system, record.t, inputs=symsbl.Sampled(record.t, record.inputs[:, 0], kind="hold"), method="cvodes")
+
+
 # ---------------------------------------------------------------------------- contract
 
 

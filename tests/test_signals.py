@@ -115,3 +115,16 @@ def test_sampled_errors():
         Sampled([0, 1, 2], [1, np.nan, 3])
     with pytest.raises(DataError, match=exactly('Sampled t: expected a 1-D array of at least 2 samples, received shape (1,)')):
         Sampled([0], [1])
+
+
+def test_a_held_input_keeps_each_sample_until_the_next_and_each_interval_its_own_value():
+    import numpy as np
+
+    import symsbl
+
+    held = symsbl.Sampled([0.0, 1.0, 2.0], [1.0, 5.0, 3.0], kind="hold")
+    assert np.array_equal(held(np.array([0.0, 0.5, 0.999, 1.0, 1.5, 2.0, 3.0])), [1, 1, 1, 5, 5, 3, 3])
+    nodes = held.at_nodes(np.array([0.0, 1.0, 2.0]), 3)  # left end, middle, right end of each interval
+    assert nodes.shape == (2, 3, 1) and np.array_equal(nodes[:, :, 0], [[1, 1, 1], [5, 5, 5]])
+    linear = symsbl.Sampled([0.0, 1.0, 2.0], [1.0, 5.0, 3.0])
+    assert np.array_equal(linear.at_nodes(np.array([0.0, 1.0, 2.0]), 3)[:, :, 0], [[1, 3, 5], [5, 4, 3]])

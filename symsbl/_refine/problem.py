@@ -24,7 +24,7 @@ __all__ = ["Parameterisation", "Records", "INTERPOLATIONS", "check_records", "ch
            "N_WINDOWS"]
 
 #: How a measured input runs between its samples (see :class:`symsbl.Sampled`).
-INTERPOLATIONS = ("linear", "cubic", "periodic")
+INTERPOLATIONS = ("linear", "cubic", "periodic", "hold")
 
 
 @dataclass(frozen=True)
@@ -101,12 +101,7 @@ def _stage_values(traj: Trajectory, names, interpolation: str, substeps: int) ->
         return np.zeros((traj.n_samples - 1, 0))
     U = np.column_stack([traj.column(n) for n in names])
     t = traj.t
-    if interpolation == "periodic":  # samples = whole periods: interpolate one period beyond the last sample
-        signal = Sampled(t, U, kind="periodic")
-    else:
-        signal = Sampled(t, U, kind=interpolation)
-    nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
-    vals = np.asarray(signal(nodes.ravel())).reshape(nodes.size, len(names))
+    vals = Sampled(t, U, kind=interpolation).at_nodes(t, n_nodes)  # (n - 1, nodes, inputs)
     return np.ascontiguousarray(vals.reshape(t.size - 1, n_nodes * len(names)))
 
 
