@@ -18,7 +18,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from ._errors import LibraryError, MissingExtraError, SymsblError, expected
+from ._errors import DataError, LibraryError, MissingExtraError, SymsblError, expected
 from ._progress import progress_enabled
 from ._refine.problem import INTERPOLATIONS
 
@@ -134,6 +134,12 @@ def _read(args, path, states, inputs, *, optional=()):
     time = None if args.time == "" else args.time
     if optional:
         present = read_columns(path)
+        hidden = [s for s in states if s not in present and s not in optional]
+        if hidden:
+            raise DataError(expected(
+                f"--states {','.join(hidden)}", "a column of DATA or the velocity of a --kinematics pair",
+                "neither", "a hidden state with its own law is not identified from the command line yet "
+                "(in Python, symsbl.refine fits one that a starting model names)", raw=True))
         states = [s for s in states if s in present or s not in optional]
     return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
 

@@ -111,6 +111,9 @@ def test_library_file(files, capsys, tmp_path):
                                                          r"constant 3; remove it from the states"),
         ("short", ["--states", "x1,x2", "--inputs", "F"], r"rows: expected more regression rows than candidate terms "
                                                           r"\(34\), received \d+ rows from 1 record\(s\) with WeakForm"),
+        (None, ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
+         r"--states z: expected a column of DATA or the velocity of a --kinematics pair, received neither; a hidden "
+         r"state with its own law is not identified from the command line yet"),
     ],
 )
 def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
