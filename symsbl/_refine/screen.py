@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._library import Library
 from .._selection import complexity
 from .problem import window_plan
 
@@ -39,7 +38,7 @@ MAX_SCREENED = 32
 PER_EQUATION = 3
 
 
-def _pool(model, library: Library) -> dict:
+def _pool(model, library) -> dict:
     """Per fitted equation, the library terms it does not hold, simplest first, at most :data:`MAX_SCREENED`."""
     fitted = [eq for eq in model.equations if not eq.fixed]
     if not fitted:
@@ -78,7 +77,7 @@ def gains(S: np.ndarray, g: np.ndarray, base: np.ndarray, alpha_base: np.ndarray
     return np.where(info > 1e-10 * scale, 0.5 * score**2 / np.maximum(info, 1e-300), 0.0)
 
 
-def screen_terms(engine_of, model, records, solution, base_engine, library: Library, threshold) -> dict:
+def screen_terms(engine_of, model, records, solution, base_engine, library, threshold) -> dict:
     """Library terms worth trying in each equation, ``{state: [name, ...]}`` (largest gain first).
 
     Parameters
@@ -93,7 +92,8 @@ def screen_terms(engine_of, model, records, solution, base_engine, library: Libr
     solution : Solution
         The fit of ``model`` on ``records`` by ``base_engine``.
     base_engine : Engine
-    library : Library
+    library : Rebased
+        The candidate library in the model's symbols (:class:`~symsbl._refine.candidates.Rebased`).
     threshold : callable
         ``threshold(n_obs)``: nats a candidate's gain on ``n_obs`` screened measurements must exceed (the
         selection's penalty per term at that size).
