@@ -81,10 +81,6 @@ def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None) -> RV
 MAX_SCORED = 2000
 
 
-class _Budget(Exception):
-    """The search has scored :data:`MAX_SCORED` supports: it keeps the best found so far."""
-
-
 class SupportSearch:
     """Evidence-guided local search over supports around the RVM's answer.
 
@@ -105,13 +101,14 @@ class SupportSearch:
         self.norms = np.sqrt(np.maximum(np.diag(G), 1e-300))
         self.cache: dict[tuple, tuple[float, list[int], RVM]] = {}
 
-    def score(self, cols) -> tuple[float, list[int], RVM]:
+    def score(self, cols) -> tuple[float, list[int], RVM] | None:
         """Penalised log evidence of the RVM refitted on ``cols``, the columns it keeps
-        (sorted), and the fit itself."""
+        (sorted), and the fit itself; None once :data:`MAX_SCORED` supports have been scored
+        (the search then keeps the best found so far)."""
         key = tuple(sorted(cols))
         if key not in self.cache:
             if len(self.cache) >= MAX_SCORED:
-                raise _Budget
+                return None
             fit = fit_rvm(self.template, subset_stats(self.stats, key, self.target), 0, self.prune_nats)
             kept = [key[i] for i in fit.active_]
             value = fit.log_evidence_ - self.prune_nats * len(kept)
@@ -163,19 +160,18 @@ class SupportSearch:
                     trials.append(others)
                 pool = self._top(corr + mu[j] * G[:, j], active) + self.collinear(j, active)
                 trials += [others + [i] for i in dict.fromkeys(pool)]
-            improved = None
-            try:
-                for cols in trials:
-                    value, kept, f = self.score(cols)
-                    if value > best + 1e-6 and (improved is None or value > improved[0]):
-                        improved = (value, kept, f)
-            except _Budget:  # out of budget: keep the best support found, this move's included
-                if improved is not None:
-                    best, active, fit = improved
+            improved, spent = None, False
+            for cols in trials:
+                scored = self.score(cols)
+                if scored is None:  # out of budget: keep the best support found, this move's included
+                    spent = True
+                    break
+                if scored[0] > best + 1e-6 and (improved is None or scored[0] > improved[0]):
+                    improved = scored
+            if improved is not None:
+                best, active, fit = improved
+            if improved is None or spent:
                 break
-            if improved is None:
-                break
-            best, active, fit = improved
         return best, active, fit
 
 
@@ -199,10 +195,9 @@ def search_support(first: RVM, stats, target, keys, template, tol):
         start = fit_rvm(template, subset_stats(stats, cols, target), 0, first.prune_nats_)
         if len(start.active_) == 0:
             continue
-        try:
-            value, kept, _ = search.run([cols[i] for i in start.active_])
-        except _Budget:  # its starting support was one too many
+        if len(search.cache) >= MAX_SCORED:  # the budget is spent
             break
+        value, kept, _ = search.run([cols[i] for i in start.active_])
         if value > best + 1e-6:
             best, active = value, kept
     alternatives: dict[int, list[int]] = {}
@@ -212,10 +207,10 @@ def search_support(first: RVM, stats, target, keys, template, tol):
             others = active[:pos] + active[pos + 1 :]
             equal = []
             for i in search.collinear(j, active):
-                try:
-                    value, kept, _ = search.score(others + [i])
-                except _Budget:
+                scored = search.score(others + [i])
+                if scored is None:
                     break
+                value, kept, _ = scored
                 if value >= best - tol and i in kept and set(kept) - {i} == set(others):
                     equal.append((i, value))
             if not equal:
