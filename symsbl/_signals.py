@@ -62,9 +62,16 @@ class Signal(abc.ABC):
     def at_nodes(self, t: np.ndarray, n_nodes: int) -> np.ndarray:
         """The values at ``n_nodes`` equally spaced nodes of every interval of the grid ``t`` (both ends
         included), ``(len(t) - 1, n_nodes, n_outputs)``: what fixed-step RK4 integrates."""
-        t = np.asarray(t, dtype=float)
-        nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
-        return np.asarray(self(nodes.ravel())).reshape(t.size - 1, n_nodes, self.n_outputs)
+        return self._at(_nodes(t, n_nodes))
+
+    def _at(self, nodes: np.ndarray) -> np.ndarray:
+        return np.asarray(self(nodes.ravel())).reshape(*nodes.shape, self.n_outputs)
+
+
+def _nodes(t, n_nodes: int) -> np.ndarray:
+    """``n_nodes`` equally spaced times in every interval of the grid ``t``, both ends included."""
+    t = np.asarray(t, dtype=float)
+    return t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
 
 
 @dataclass(frozen=True)
@@ -373,12 +380,10 @@ class Sampled(Signal):
     def at_nodes(self, t: np.ndarray, n_nodes: int) -> np.ndarray:
         """As :meth:`Signal.at_nodes`; a held input keeps each interval's own value at its right end (the
         step there belongs to the next interval)."""
-        if self.kind != "hold":
-            return super().at_nodes(t, n_nodes)
-        t = np.asarray(t, dtype=float)
-        nodes = t[:-1, None] + np.diff(t)[:, None] * np.arange(n_nodes) / (n_nodes - 1)
-        nodes[:, -1] = t[:-1]
-        return np.asarray(self(nodes.ravel())).reshape(t.size - 1, n_nodes, self.n_outputs)
+        nodes = _nodes(t, n_nodes)
+        if self.kind == "hold":
+            nodes[:, -1] = nodes[:, 0]
+        return self._at(nodes)
 
     def expr(self, t):
         if self.kind == "hold":

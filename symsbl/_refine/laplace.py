@@ -29,7 +29,8 @@ import numpy as np
 
 from .._errors import SimulationError, expected
 
-__all__ = ["Posterior", "posterior", "reduce_model", "reprior", "mackay_alpha", "mackay_fixed_point", "schur"]
+__all__ = ["Posterior", "posterior", "reduce_model", "reprior", "mackay_alpha", "mackay_fixed_point", "schur",
+           "x0_pinv"]
 
 
 @dataclass(frozen=True)
@@ -68,17 +69,23 @@ class Posterior:
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
 
+def x0_pinv(Hxx: np.ndarray):
+    """Per segment, the pseudo-inverse of the initial-state block ``(K, nx, nx)`` (eigenvalues below 1e-12 of
+    the largest dropped), and the log-determinant and number of the directions kept."""
+    ev, V = np.linalg.eigh(Hxx)
+    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
+    inv = np.where(keep, 1.0 / np.where(keep, ev, 1.0), 0.0)
+    return np.einsum("kij,kj,klj->kil", V, inv, V), float(np.sum(np.log(ev[keep]))), int(keep.sum())
+
+
 def schur(H: np.ndarray, alpha: np.ndarray):
     """Schur complement of the initial-state blocks, with pseudo-inverses of rank-deficient blocks."""
     npar = alpha.size
     Htt = H[:, :npar, :npar].sum(axis=0) + np.diag(alpha)
-    Htx, Hxx = H[:, :npar, npar:], H[:, npar:, npar:]
-    ev, V = np.linalg.eigh(Hxx)
-    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
-    inv = np.where(keep, 1.0 / np.where(keep, ev, 1.0), 0.0)
-    pinv = np.einsum("kij,kj,klj->kil", V, inv, V)
+    Htx = H[:, :npar, npar:]
+    pinv, log_det, n_kept = x0_pinv(H[:, npar:, npar:])
     S = Htt - np.einsum("kpi,kij,kqj->pq", Htx, pinv, Htx)
-    return S, float(np.sum(np.log(ev[keep]))), int(keep.sum())
+    return S, log_det, n_kept
 
 
 def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, n_obs: np.ndarray,

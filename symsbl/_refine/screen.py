@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._selection import complexity
+from .laplace import x0_pinv
 from .problem import window_plan
 
 __all__ = ["screen_terms", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
@@ -56,11 +57,8 @@ def _pool(model, library) -> dict:
 
 def _reduced(H: np.ndarray, g: np.ndarray, npar: int):
     """Information and gradient of the coefficients with every segment's initial state eliminated."""
-    Htt, Htx, Hxx = H[:, :npar, :npar].sum(axis=0), H[:, :npar, npar:], H[:, npar:, npar:]
-    ev, V = np.linalg.eigh(Hxx)
-    keep = ev > 1e-12 * np.maximum(ev.max(axis=1, keepdims=True), 1e-300)
-    inv = np.where(keep, 1.0 / np.where(keep, ev, 1.0), 0.0)
-    pinv = np.einsum("kij,kj,klj->kil", V, inv, V)
+    Htt, Htx = H[:, :npar, :npar].sum(axis=0), H[:, :npar, npar:]
+    pinv, _, _ = x0_pinv(H[:, npar:, npar:])
     S = Htt - np.einsum("kpi,kij,kqj->pq", Htx, pinv, Htx)
     gr = g[:, :npar].sum(axis=0) - np.einsum("kpi,kij,kj->p", Htx, pinv, g[:, npar:])
     return 0.5 * (S + S.T), gr
