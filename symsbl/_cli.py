@@ -134,21 +134,24 @@ def _read(args, path, states, inputs, *, optional=()):
     time = None if args.time == "" else args.time
     if optional:
         present = read_columns(path)
-        hidden = [s for s in states if s not in present and s not in optional]
-        if hidden:
+        absent = [s for s in states if s not in present and s not in optional]
+        if absent:
             raise DataError(expected(
-                f"--states {','.join(hidden)}", "a column of DATA or the velocity of a --kinematics pair",
-                "neither", "a hidden state with its own law is not identified from the command line yet "
-                "(in Python, symsbl.refine fits one that a starting model names)", raw=True))
+                f"--states {','.join(absent)}", "a column of DATA (the position of each --kinematics pair is "
+                "measured; its velocity and latent states may be absent)", "no such column", raw=True))
         states = [s for s in states if s in present or s not in optional]
     return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
 
 
 def _unmeasured_allowed(states, kinematics) -> tuple:
-    """States a record may lack: the velocities of declared kinematic pairs."""
+    """States a record may lack once kinematic pairs are declared: the velocities, and any other state
+    (latent: its law is identified from the measured ones, see :mod:`symsbl._latent`)."""
     from ._kinematics import parse_kinematics
 
-    return tuple(v for _, v in parse_kinematics(kinematics, states)) if kinematics else ()
+    if not kinematics:
+        return ()
+    positions = {x for x, _ in parse_kinematics(kinematics, states)}
+    return tuple(s for s in states if s not in positions)
 
 
 def _cmd_identify(args) -> int:
@@ -160,15 +163,26 @@ def _cmd_identify(args) -> int:
     traj = _read(args, args.data, states, inputs, optional=_unmeasured_allowed(states, args.kinematics))
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     model = identify(traj, library, derivative=args.derivative, states=states, kinematics=args.kinematics or None,
-                     refine=not args.no_refine, refine_options={"interpolation": args.interpolation})
+                     refine=not args.no_refine,
+                     refine_options={"interpolation": args.interpolation} if args.interpolation else None)
     how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
     print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
           f"coefficients by {how}:")
     print(model)
+    if "latent" in model.metadata:
+        print(_latent_summary(model.metadata["latent"]))
     if args.json:
         model.save(args.json)
         print(f"model written to {args.json}")
     return 0 if any(eq.terms for eq in model.equations) else 1
+
+
+def _latent_summary(info: dict) -> str:
+    """What the latent-state pipeline found, in two lines."""
+    branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
+    return (f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} "
+            f"({info['periods']} periods of {info['period_samples']} samples; noise of their average "
+            f"{info['noise_std_of_average']:.3g})")
 
 
 def _cmd_validate(args) -> int:
@@ -178,7 +192,7 @@ def _cmd_validate(args) -> int:
     _outputs(args, [args.model, args.data])
     model = IdentifiedModel.load(args.model)
     velocities = tuple(v for _, v in model.kinematics)
-    traj = _read(args, args.data, model.state_names, model.input_names, optional=velocities)
+    traj = _read(args, args.data, model.state_names, model.input_names, optional=velocities + model.latent_names)
     try:
         result = validate_model(model, traj, n_band=args.band, interpolation=args.interpolation)
     except SymsblError as err:  # name the option, not the keyword behind it
@@ -256,9 +270,9 @@ def _add_identify(sub, common) -> None:
                         "absent from DATA (unmeasured), e.g. --kinematics y:v")
     p.add_argument("--no-refine", action="store_true",
                    help="stop at the equation-error fit (default: refine every coefficient by output error)")
-    p.add_argument("--interpolation", default="cubic", choices=list(INTERPOLATIONS),
-                   help="how the inputs run between samples while refining (default: cubic; hold: a digital "
-                        "controller's stepped output)")
+    p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
+                   help="how the inputs run between samples while refining (default: cubic, periodic when a state "
+                        "is latent; hold: a digital controller's stepped output)")
     p.add_argument("--json", help="write the identified model as JSON to this file")
     p.set_defaults(func=_cmd_identify)
 

@@ -25,6 +25,7 @@ from ._library import Library
 from ._model import Equation, IdentifiedModel
 from ._progress import Progress
 from ._kinematics import complete_states, parse_kinematics
+from ._latent import identify_latent, latent_states
 from ._regression import RegressionStats, as_trajectories, regression_stats
 from ._rvm import RVM
 from ._selection import complexity, fit_rvm, search_support
@@ -72,7 +73,11 @@ def identify(
         evidence cannot separate them; parsimony then keeps ``x1``.
     states : sequence of str, optional
         The model's states, in order (default: the data's). A state absent from the data is
-        unmeasured; it must be the velocity of a pair in ``kinematics``.
+        unmeasured: the velocity of a pair in ``kinematics``, or else *latent*, a state with its own
+        law that no record holds (the hysteretic force of a Bouc-Wen oscillator). A latent state is
+        identified for one position-velocity pair, one input and one record of whole periods of a
+        periodic input (see :mod:`symsbl._latent`): ``metadata["latent"]`` then gives the verdict
+        ("hidden" or "nothing hidden"), and the model is always refined by output error.
     kinematics : mapping or str, optional
         Position-velocity pairs, ``{"x1": "x2"}`` or ``"x1:x2,x3:x4"``: ``x1' = x2`` holds exactly,
         the equation is fixed and ``x2`` may be unmeasured (estimated for the regression by a
@@ -109,6 +114,9 @@ def identify(
     trajectories = as_trajectories(data)
     names = tuple(trajectories[0].state_names) if states is None else tuple(states)
     pairs = parse_kinematics(kinematics, names)
+    latent = latent_states(names, trajectories[0].state_names, pairs)
+    if latent:
+        return identify_latent(trajectories, library, names, pairs, latent, refine_options=refine_options)
     completed, unmeasured = complete_states(trajectories, names, pairs)
     problem = regression_stats(completed, library, derivative=derivative, chunk_size=chunk_size, jit=jit)
     model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats, kinematics=pairs)

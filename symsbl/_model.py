@@ -299,6 +299,9 @@ class IdentifiedModel:
             for t in eq.terms:
                 if t.fixed and t.name == name:
                     return f"scaled so that its coefficient in {eq.lhs}' is {t.coef:g}"
+        used = any(name in {s.name for s in t.sympy.free_symbols} for eq in self.equations for t in eq.terms)
+        if not used:
+            return "not needed: no equation uses it (nothing hidden)"
         return "its scale is not fixed by a term of the model"
 
     # -- symbolic forms -------------------------------------------------------------------

@@ -356,7 +356,7 @@ class Sampled(Signal):
         frac = np.round(s - base, 9)
         offsets = np.unique(frac)
         out = np.empty((s.size, values.shape[1]))
-        if offsets.size <= 16:
+        if offsets.size <= 130:  # the 2 S + 1 stage nodes of up to 64 RK4 substeps
             k = np.arange(spectrum.shape[0])
             for q in offsets:
                 shift = np.exp(2j * np.pi * k * q / n)

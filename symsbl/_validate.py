@@ -158,7 +158,7 @@ def _check(model, data, n_band) -> tuple[str, ...]:
         raise DataError(expected("n_band", "a number of Monte Carlo draws >= 0 (0: no band)", n_band))
     position_of = {v: x for x, v in model.kinematics}
     observed = tuple(n for n in model.state_names if n in data.state_names)
-    missing = [n for n in model.state_names if n not in data.state_names
+    missing = [n for n in model.state_names if n not in data.state_names and n not in model.latent_names
                and not (n in position_of and position_of[n] in data.state_names)]
     if missing or not observed:
         note = " (a velocity may be missing when its position is there)" if model.kinematics else ""

@@ -112,8 +112,11 @@ def test_library_file(files, capsys, tmp_path):
         ("short", ["--states", "x1,x2", "--inputs", "F"], r"rows: expected more regression rows than candidate terms "
                                                           r"\(34\), received \d+ rows from 1 record\(s\) with WeakForm"),
         (None, ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
-         r"--states z: expected a column of DATA or the velocity of a --kinematics pair, received neither; a hidden "
-         r"state with its own law is not identified from the command line yet"),
+         r"data: expected an input exciting at least 8 frequencies \(the skeleton and the hidden law need a "
+         r"broadband periodic input\), received 1 excited frequencies; use a multisine"),
+        (None, ["--states", "q,x2", "--inputs", "F", "--kinematics", "q:x2"],
+         r"--states q: expected a column of DATA \(the position of each --kinematics pair is measured; its velocity "
+         r"and latent states may be absent\), received no such column$"),
     ],
 )
 def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):

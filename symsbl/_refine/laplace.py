@@ -130,6 +130,12 @@ def mackay_alpha(post: Posterior, alpha: np.ndarray, floor: float = 1e-300) -> n
 #: How far (posterior standard deviations) the prior precisions' fixed point may move a coefficient on the
 #: quadratic model of the data term before that model is no longer trusted.
 TRUST = 10.0
+#: Largest prior precision relative to the data's curvature of the same coefficient. A coefficient the data
+#: do not support drives MacKay's ``alpha`` to infinity; at ``1e8`` times its data precision it is already
+#: shrunk to 1e-8 of its data estimate (pruned), and the products ``alpha mu`` that a change of prior
+#: (:func:`reprior`) needs stay finite (unbounded, ``1e288 x 1e-168`` made the model reduction meaningless
+#: and kept pruned terms in the model).
+PRUNED = 1e8
 
 
 def mackay_fixed_point(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, rounds: int = 50):
@@ -145,7 +151,9 @@ def mackay_fixed_point(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, roun
     alpha, mean : ndarray
     """
     S_data, _, _ = schur(H, np.zeros_like(alpha))
-    a = np.array(alpha, dtype=float)
+    curvature = np.diag(S_data)
+    cap = np.where(curvature > 0, PRUNED * curvature, 1e300)
+    a = np.minimum(np.array(alpha, dtype=float), cap)
     mu = np.array(theta, dtype=float)
     reach = TRUST * np.sqrt(np.maximum(np.diag(np.linalg.pinv(S_data + np.diag(alpha))), 0.0))
     kept = a
@@ -162,7 +170,7 @@ def mackay_fixed_point(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, roun
             return kept, mu
         kept, mu = a, theta + step
         gamma = np.clip(1.0 - a * np.diag(cov), 1e-12, 1.0)
-        new = np.clip(gamma / np.maximum(np.clip(mu, -1e150, 1e150) ** 2, 1e-300), 1e-300, 1e300)
+        new = np.clip(gamma / np.maximum(np.clip(mu, -1e150, 1e150) ** 2, 1e-300), 1e-300, cap)
         done = np.max(np.abs(np.log(new) - np.log(a))) < 1e-4
         a = new
         if done:

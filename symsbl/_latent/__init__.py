@@ -1,0 +1,177 @@
+"""Latent states: a state with its own law that no record measures (the hysteretic force of Bouc-Wen).
+
+A state of the model that is neither a column of the data nor the velocity of a declared
+position-velocity pair is latent. Its equation cannot be regressed, so :func:`identify_latent`
+reconstructs it, screens its law and settles the structure by output error on what is measured:
+
+1. :mod:`.periodic`: the record is cut into the whole periods of its input and averaged; the
+   scatter of the periods gives the noise of every spectral bin;
+2. :mod:`.skeleton` (stage 1): the linear skeleton ``m y'' + c y' + k y = u`` by frequency-domain
+   output error;
+3. :mod:`.skeleton` and :mod:`.law` (stage 3): the split of ``(m, c, k)`` that leaves the hidden
+   force ``z = u - m y'' - c y' - k y`` to a law in ``(y', z)``, and the relevance vector machine on
+   the weak form of that law (a screen: full recall, low precision); in parallel, the "nothing
+   hidden" alternative ``u = m y'' + c y' + k y + sum eta phi(y, y')`` (a memoryless force);
+4. :func:`symsbl.refine` (stage 4): each branch (linear, memoryless, hidden) refined by output
+   error on the measured position only, with term selection on the output-error evidence and the
+   latent initial state as an unknown; the branch of highest Laplace evidence wins, and the hidden
+   branch only by more than the per-term penalty and with a law that is not ``z' = y' g(z)`` (which
+   integrates to a memoryless spring ``z = G(y)``).
+
+Convention: the latent state enters the velocity equation with the coefficient ``-1/m`` of the
+split, held fixed: it is a force in the units of the input (to the precision of that ``m``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+
+import numpy as np
+
+from .._errors import DataError, expected
+from .._library import Library, Term
+from .._model import IdentifiedModel
+from .branches import Branches, Screened
+from .law import WeakForm, evaluate, homogeneous_terms, screen
+from .periodic import Periods, Spectra, split_periods
+from .skeleton import fit_linear, split
+
+__all__ = ["identify_latent", "latent_states", "Periods", "Spectra", "split_periods"]
+
+#: Output-error refinement settings of every branch (band-limited periodic input).
+REFINE_DEFAULTS = {"interpolation": "periodic"}
+
+
+def latent_states(names, measured, pairs) -> tuple[str, ...]:
+    """The states of ``names`` that are neither measured nor the velocity of a declared pair."""
+    velocities = {v for _, v in pairs}
+    return tuple(n for n in names if n not in measured and n not in velocities)
+
+
+def _check_setting(trajectories, names, pairs, latent, library: Library):
+    """The one setting identified: one record, one position-velocity pair, one latent state, one input."""
+    if len(latent) != 1 or len(pairs) != 1 or len(names) != 3:
+        raise DataError(expected(
+            "states", "a position, its velocity and one latent state (e.g. --states y,v,z --kinematics y:v)",
+            f"states {list(names)} with kinematics {[f'{x}:{v}' for x, v in pairs]} and latent {list(latent)}",
+            "a latent state is identified for a single-degree-of-freedom oscillator", raw=True))
+    if len(trajectories) != 1:
+        raise DataError(expected("data", "one record when a state is latent", f"{len(trajectories)} records",
+                                 raw=True))
+    record = trajectories[0]
+    position = pairs[0][0]
+    if position not in record.state_names:
+        raise DataError(expected(f"state {position!r}", "a column of the data (the measured position)",
+                                 "no such column", raw=True))
+    if len(record.input_names) != 1:
+        raise DataError(expected("inputs", "one input (the force) when a state is latent",
+                                 list(record.input_names), raw=True))
+    missing = [n for n in (*names, *record.input_names) if n not in library.variable_names]
+    if missing:
+        raise DataError(expected("library", f"terms of the states and input {[*names, *record.input_names]}",
+                                 f"no variable {missing}", raw=True))
+
+
+def identify_latent(trajectories, library: Library, names, pairs, latent, *, refine_options=None) -> IdentifiedModel:
+    """Identify a single-degree-of-freedom oscillator with one latent state from its position alone.
+
+    Parameters
+    ----------
+    trajectories : list of Trajectory
+        One record of whole periods of a periodic input, holding the position and the input.
+    library : Library
+        Candidates over the states and the input; the law of the latent state uses its homogeneous
+        terms in (velocity, latent), the memoryless alternative its homogeneous terms in (position, velocity).
+    names : sequence of str
+        The states ``(position, velocity, latent)`` in the model's order.
+    pairs : sequence of (str, str)
+        The one position-velocity pair.
+    latent : sequence of str
+        The one latent state.
+    refine_options : dict, optional
+        Keyword arguments of :func:`symsbl.refine` for every branch.
+
+    Returns
+    -------
+    IdentifiedModel
+        ``metadata["latent"]`` holds the verdict, each branch's log evidence and terms, the stages'
+        results and times.
+    """
+    _check_setting(trajectories, names, pairs, latent, library)
+    clock = _Clock()
+    record = trajectories[0]
+    (y, v), z, u = pairs[0], latent[0], record.input_names[0]
+    periods = split_periods(record.t, record.column(u), record.column(y))
+    stages = _screen(Spectra(periods), library, y, v, z, u, clock)
+    symbols = {s.name(): s for s in library.variables}
+    builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
+    starts = builder.starts(stages)
+    options = {**REFINE_DEFAULTS, **(refine_options or {})}
+    data = record.slice(periods.start)
+    fits, caught = {}, {}
+    from .._refine import refine
+
+    for name, start in starts.items():
+        with warnings.catch_warnings(record=True) as caught[name]:
+            warnings.simplefilter("always")
+            fits[name] = refine(start, data, **options)
+        clock(f"{name} branch")
+    verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
+    for w in caught[best]:  # the losing branches' warnings say only that they lose
+        warnings.warn(w.message, w.category, stacklevel=3)
+    final = builder.with_latent(fits[best], keep=(verdict == "hidden"))
+    summary = {
+        "verdict": verdict, "latent": z, "period_samples": periods.length, "periods": periods.n_periods,
+        "dropped_periods": periods.dropped, "f_max": stages.spectra.f_max,
+        "noise_std_of_average": math.sqrt(stages.spectra.noise_var),
+        "linear_skeleton": stages.linear.to_json(), "split_skeleton": stages.skeleton.to_json(),
+        "screened_law": [stages.law_terms[i].name for i in stages.law.active_],
+        "screened_force": [stages.force_terms[i - 3].name for i in stages.memory.active_ if i >= 3],
+        "branches": {k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
+                     for k, f in fits.items()},
+        "seconds": clock.times,
+    }
+    return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, clock) -> Screened:
+    """Stages 1-3: the linear skeleton, its split from the hidden force, and the screens of the hidden law and of
+    the memoryless alternative."""
+    linear = fit_linear(spectra)
+    clock("linear skeleton")
+    symbols = {s.name(): s for s in library.variables}
+    law_terms = homogeneous_terms(library.terms, {v, z})
+    if v not in [t.name for t in law_terms]:
+        law_terms = [Term(symbols[v]), *law_terms]
+    force_terms = homogeneous_terms(library.terms, {y, v}, exclude={y, v, "1"})
+    weak = WeakForm(spectra)
+    samples = {y: spectra.y, v: spectra.v, u: spectra.u}
+    law_columns = evaluate(law_terms, library.variables)
+
+    def columns_of(zvalues):
+        return law_columns({**samples, z: zvalues})
+
+    linear_column = [t.name for t in law_terms].index(v)
+    skeleton = split(lambda m, c, k: weak.unexplained(columns_of, m, c, k, linear_column), linear)
+    zhat = spectra.force(skeleton.m, skeleton.c, skeleton.k)
+    law = screen(weak.stats(weak.filter(columns_of(zhat)), weak.derivative(zhat)))
+    forces = (evaluate(force_terms, library.variables)({**samples, z: zhat}) if force_terms
+              else np.zeros((spectra.N, 0)))
+    memory = screen(weak.stats(weak.filter(np.column_stack([spectra.a, spectra.v, spectra.y, forces])),
+                               weak.filter(spectra.u)), free=(0, 1, 2))
+    clock("split and screen")
+    return Screened(spectra, linear, skeleton, law_terms, law, force_terms, memory)
+
+
+class _Clock:
+    def __init__(self):
+        self.start = time.perf_counter()
+        self.times = {}
+
+    def __call__(self, stage: str):
+        now = time.perf_counter()
+        self.times[stage] = round(now - self.start, 2)
+        self.start = now

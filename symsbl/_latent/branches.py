@@ -1,0 +1,149 @@
+"""The three explanations of a record with a latent state, as starting models, and the verdict between them.
+
+- *linear*: ``m y'' + c y' + k y = u``;
+- *memoryless*: ``m y'' + c y' + k y + sum eta phi(y, y') = u`` (a nonlinear spring or damper);
+- *hidden*: ``m y'' + c y' + k y + z = u`` with ``z' = sum xi theta(y', z)``.
+
+Each is written in the states ``(y, v, z)`` as ``v' = u/m - k/m y - c/m v - ... - z/m``; the
+coefficient of ``z`` is held at the split's ``-1/m`` (the scale convention: ``z`` is a force in the
+units of ``u``). The verdict takes the branch of highest output-error log evidence; the hidden one
+must beat the others by the per-term penalty ``1/2 log N + log M`` and have a law that is not
+``z' = v g(z)``, which integrates to ``z = G(y)``, an elastic force that the memoryless branch
+names directly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import casadi as ca
+import numpy as np
+import sympy as sp
+
+from .._model import Equation, IdentifiedModel, TermEstimate
+from .periodic import Spectra
+from .skeleton import Skeleton
+
+__all__ = ["Screened", "Branches"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Screened:
+    """What stages 1-3 found.
+
+    Attributes
+    ----------
+    spectra : Spectra
+    linear, skeleton : Skeleton
+        The linear fit and its split from the hidden force.
+    law_terms : list of Term
+        Candidates of the hidden law; ``law`` the RVM screen on them.
+    force_terms : list of Term
+        Candidates of the memoryless force; ``memory`` the RVM screen on ``[y'', y', y, *force_terms]``.
+    """
+
+    spectra: Spectra
+    linear: Skeleton
+    skeleton: Skeleton
+    law_terms: list
+    law: object
+    force_terms: list
+    memory: object
+
+    @property
+    def n_candidates(self) -> int:
+        return len(self.law_terms) + len(self.force_terms)
+
+
+class Branches:
+    """Models of the three branches in the states ``(y, v, z)``.
+
+    Parameters
+    ----------
+    states : tuple of casadi.SX
+        ``(y, v, z)`` symbols in the model's order.
+    u : casadi.SX
+        The input.
+    y, v, z : str
+        Names of the position, its velocity and the latent state.
+    """
+
+    def __init__(self, states, u, y: str, v: str, z: str):
+        self.states, self.u, self.y, self.v, self.z = states, u, y, v, z
+        self.sym = {s.name(): s for s in states}
+
+    def starts(self, s: Screened) -> dict:
+        """The starting model of each branch."""
+        memory = s.memory
+        return {
+            "linear": self.model(s.linear, [], []),
+            "memoryless": self.model(_memoryless_skeleton(memory, s.linear),
+                                     [(s.force_terms[i - 3], memory, i) for i in memory.active_ if i >= 3], []),
+            "hidden": self.model(s.skeleton, [], [(s.law_terms[i], s.law, i) for i in s.law.active_]),
+        }
+
+    def model(self, skeleton: Skeleton, forces, laws) -> IdentifiedModel:
+        """``v' = (u - c v - k y - sum eta phi - z) / m`` and ``z' = sum xi theta`` from screened columns."""
+        m, sv = skeleton.m, self.sym
+        terms = [_estimate(self.u, 1 / m), _estimate(sv[self.y], -skeleton.k / m),
+                 _estimate(sv[self.v], -skeleton.c / m)]
+        terms += [_estimate(t.expr, -fit.coef_[i] / m, fit, i) for t, fit, i in forces]
+        hidden = bool(laws)
+        if hidden:
+            terms.append(TermEstimate(expr=sv[self.z], coef=-1 / m, std=0.0, fixed=True))
+        equations = [Equation.kinematic(self.y, sv[self.v]), _equation(self.v, terms)]
+        if hidden:
+            equations.append(_equation(self.z, [_estimate(t.expr, fit.coef_[i], fit, i) for t, fit, i in laws]))
+        states = self.states if hidden else tuple(s for s in self.states if s.name() != self.z)
+        return IdentifiedModel(states=states, inputs=(self.u,), equations=tuple(equations),
+                               kinematics=((self.y, self.v),), measured=(self.y,))
+
+    def with_latent(self, model: IdentifiedModel, keep: bool) -> IdentifiedModel:
+        """The chosen branch in the states asked for: without a hidden law, ``z' = 0`` and ``z`` used nowhere."""
+        if keep:
+            return model
+        empty = Equation(self.z, (), np.zeros((0, 0)), math.nan, math.nan, 0)
+        return dataclasses.replace(model, states=self.states, equations=(*model.equations, empty))
+
+    def integrable(self, terms) -> bool:
+        """Every term is ``v g(z)``: the law integrates to ``z = G(y)``, an elastic force."""
+        for term in terms:
+            symbols = {s.name: s for s in term.sympy.free_symbols}
+            if self.v not in symbols:
+                return False
+            rest = sp.simplify(term.sympy / symbols[self.v])
+            if self.v in {s.name for s in rest.free_symbols}:
+                return False
+        return True
+
+    def verdict(self, fits: dict, n_samples: int, n_candidates: int):
+        """``(verdict, best branch, log evidence by branch)`` of the refined branches."""
+        scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
+        penalty = 0.5 * math.log(n_samples) + math.log(max(n_candidates, 2))
+        visible = max(("linear", "memoryless"), key=scores.get)
+        law = fits["hidden"].equation(self.z).terms
+        if law and not self.integrable(law) and scores["hidden"] > scores[visible] + penalty:
+            return "hidden", "hidden", scores
+        return f"nothing hidden ({'memoryless force' if visible == 'memoryless' else 'linear'})", visible, scores
+
+
+def _memoryless_skeleton(fit, linear: Skeleton) -> Skeleton:
+    m, c, k = (float(fit.coef_[i]) for i in range(3))
+    return Skeleton(m if m > 0 else linear.m, c, k)
+
+
+def _estimate(expr, coef, fit=None, i=None) -> TermEstimate:
+    """A starting term. The screen's prior precisions are not carried over: its residual is systematic
+    (see :mod:`.law`), and a precision that pins a spurious term at zero would keep it out of reach of
+    the output-error selection; the refinement starts from its own default prior."""
+    if fit is None:
+        return TermEstimate(expr=ca.SX(expr), coef=float(coef), std=abs(float(coef)) * 1e-2)
+    pos = list(fit.active_).index(i)
+    scale = abs(float(coef) / float(fit.coef_[i])) if fit.coef_[i] else 1.0
+    return TermEstimate(expr=ca.SX(expr), coef=float(coef), std=float(math.sqrt(fit.sigma_[pos, pos])) * scale)
+
+
+def _equation(lhs: str, terms) -> Equation:
+    cov = np.diag([t.std ** 2 for t in terms]) if terms else np.zeros((0, 0))
+    return Equation(lhs, tuple(terms), cov, math.nan, math.nan, 0)

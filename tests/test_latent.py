@@ -1,0 +1,167 @@
+"""Latent states: a hysteretic force identified from the position alone (symsbl._latent).
+
+References: the systems that generated the records (their parameters are known), the analytic derivative
+of a periodic signal, the noise variance that was added, and a brute-force period search.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import symsbl
+from symsbl._latent import Spectra, split_periods
+from symsbl._latent.skeleton import fit_linear
+
+FS = 1000.0
+PERIOD = 4.096  # s: 4096 samples
+N = int(PERIOD * FS)
+
+
+def forcing(rms, seed, periods):
+    """A multisine (4-100 Hz) sampled over whole periods, interpolated band-limited between samples (exact
+    for it, and ~50x cheaper to integrate than its 393 sines)."""
+    t = np.arange(periods * N) / FS
+    return t, symsbl.Sampled(t, symsbl.Multisine(rms=rms, f_min=4.0, f_max=100.0, seed=seed, period=PERIOD)(t),
+                             kind="periodic")
+
+
+def periodic_record(system, *, rms=40.0, seed=1, periods=4, warm=2, noise=0.01, noise_seed=5):
+    """Steady-state periods of ``system`` under a multisine, position only, with white noise."""
+    t, u = forcing(rms, seed, warm + periods)
+    clean = symsbl.simulate(system, t, inputs=u, method="rk4", substeps=8).slice(warm * N)
+    x = clean.column("x1")
+    rng = np.random.default_rng(noise_seed)
+    measured = x + noise * x.std() * rng.standard_normal(x.size)
+    record = symsbl.Trajectory(clean.t - clean.t[0], measured[:, None], clean.inputs, ("x1",), ("F",))
+    return record, clean
+
+
+def identify_hidden(record, **kwargs):
+    x1, x2, x3, F = symsbl.symbols("x1 x2 x3 F")
+    library = symsbl.paper([x1, x2, x3], [F], degree=3)
+    return symsbl.identify(record, library, states=("x1", "x2", "x3"), kinematics="x1:x2", **kwargs)
+
+
+def steady_state(system, rms, seed):
+    """The last of three periods of ``system``'s response to a fresh multisine, from rest."""
+    t, u = forcing(rms, seed, 3)
+    return symsbl.simulate(system, t, inputs=u, method="rk4", substeps=8).column("x1")[2 * N:]
+
+
+# -- the periodic record ------------------------------------------------------------------------------
+def test_periods_found_and_transient_dropped():
+    rng = np.random.default_rng(0)
+    period = 500
+    u1 = rng.standard_normal(period)
+    u = np.concatenate([u1[-137:], np.tile(u1, 5)])  # a partial period first
+    y = np.tile(np.sin(np.arange(period) / 20.0), 6)[-u.size:] + 1e-3 * rng.standard_normal(u.size)
+    y[137:137 + period] += 0.05 * np.exp(-np.arange(period) / 100.0)  # the first whole period: a transient
+    t = np.arange(u.size) / FS
+    periods = split_periods(t, u, y)
+    # brute force: the smallest lag at which u repeats
+    lag = next(L for L in range(4, u.size // 3) if np.allclose(u[L:], u[:-L]))
+    assert periods.length == lag == period
+    assert periods.dropped == 1 and periods.n_periods == 4 and periods.start == 137 + period
+
+
+def test_aperiodic_input_is_refused():
+    rng = np.random.default_rng(1)
+    t = np.arange(3000) / FS
+    with pytest.raises(symsbl.DataError, match=r"^data: expected a periodic input recorded over at least 3 whole "
+                                               r"periods .*received an input that does not repeat"):
+        split_periods(t, rng.standard_normal(t.size), rng.standard_normal(t.size))
+
+
+def test_spectral_derivatives_and_noise_of_the_average():
+    rng = np.random.default_rng(2)
+    P, n = 8, 1000
+    t = np.arange(n) / FS
+    u = sum(np.sin(2 * np.pi * f * t + f) for f in (3.0, 5.0, 7.0, 11.0, 13.0, 17.0, 19.0, 23.0, 29.0))
+    y = np.sin(2 * np.pi * 7.0 * t) + 0.3 * np.cos(2 * np.pi * 13.0 * t)
+    sd = 0.01
+    spectra = Spectra(split_periods(np.arange(P * n) / FS, np.tile(u, P), np.tile(y, P)
+                                    + sd * rng.standard_normal(P * n)))
+    v = 2 * np.pi * (7.0 * np.cos(2 * np.pi * 7.0 * t) - 0.3 * 13.0 * np.sin(2 * np.pi * 13.0 * t))
+    assert np.sqrt(np.mean((spectra.v - v) ** 2)) < 4 * spectra.sd(spectra.iw)  # within its propagated noise
+    assert spectra.noise_var == pytest.approx(sd ** 2 / P, rel=0.05)  # the variance that was added
+
+
+def test_linear_skeleton_by_frequency_domain_output_error():
+    system = symsbl.systems.linear(m=1.5, c=6.0, k=5e4)
+    record, _ = periodic_record(system, noise=0.002)
+    spectra = Spectra(split_periods(record.t, record.column("F"), record.column("x1")))
+    fit = fit_linear(spectra)
+    assert fit.m == pytest.approx(1.5, rel=2e-3) and fit.k == pytest.approx(5e4, rel=2e-3)
+    assert fit.c == pytest.approx(6.0, rel=2e-2)
+    assert abs(fit.k - 5e4) < 4 * fit.std[2]
+
+
+# -- the whole pipeline --------------------------------------------------------------------------------
+CASES = {
+    # z' = A v - a |v| z - b v |z| (n = 1), and z' = A v - a |v| z |z| - b v z^2 (n = 2)
+    "n1": dict(A=4e4, n=1, a=600.0, b=-300.0, m=1.5, c=6.0, k=3e4),
+    "n2": dict(A=4e4, n=2, a=2.8, b=1.2, m=1.2, c=5.0, k=4e4),
+}
+#: term -> (parameter, sign, degree in x3) of the true law
+LAWS = {"n1": {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)},
+        "n2": {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)}}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_hidden_bouc_wen_law_found_from_the_position_alone(case):
+    p = CASES[case]
+    system = symsbl.systems.bouc_wen(**p)
+    record, _ = periodic_record(system, noise=0.01)
+    model = identify_hidden(record)
+    info = model.metadata["latent"]
+    assert info["verdict"] == "hidden" and model.latent_names == ("x3",)
+    law = model.equation("x3")
+    assert sorted(law.names) == sorted(LAWS[case])
+    v = model.equation("x2")
+    assert v.coef("F") == pytest.approx(1 / p["m"], rel=1e-3)
+    assert -v.coef("x1") == pytest.approx(p["k"] / p["m"], rel=5e-3)
+    assert -v.coef("x2") == pytest.approx(p["c"] / p["m"], rel=2e-2)
+    # the model's x3 is the true force over s (its coefficient in x2' is the convention -s/m), so a term of
+    # degree d in x3 has the coefficient xi_true s^(d - 1)
+    s = -next(t for t in v.terms if t.name == "x3").coef * p["m"]
+    for name, (param, sign, degree) in LAWS[case].items():
+        assert law.coef(name) * s ** (1 - degree) == pytest.approx(sign * p[param], rel=0.02), name
+    # held out: a fresh multisine at 60 % of the force, in steady state
+    truth = steady_state(system, 24.0, seed=7)
+    predicted = steady_state(model.to_system(), 24.0, seed=7)
+    assert np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std() < 0.01
+
+
+def test_nothing_hidden_in_a_linear_oscillator():
+    record, _ = periodic_record(symsbl.systems.linear(m=1.5, c=6.0, k=5e4), noise=0.01)
+    model = identify_hidden(record)
+    info = model.metadata["latent"]
+    assert info["verdict"] == "nothing hidden (linear)"
+    assert model.equation("x3").terms == () and model.equation("x2").names == ["F", "x1", "x2"]
+    assert model.equation("x2").coef("F") == pytest.approx(1 / 1.5, rel=1e-3)
+    doc = model.to_json()
+    assert doc["latent"] == {"x3": "not needed: no equation uses it (nothing hidden)"}
+    assert str(symsbl.IdentifiedModel.from_json(json.dumps(doc, default=float))) == str(model)
+
+
+def test_a_memoryless_spring_is_not_mistaken_for_hysteresis():
+    system = symsbl.systems.duffing(k3=3e9, m=1.5, c=30.0, k=5e4)
+    record, _ = periodic_record(system, noise=0.01, periods=3)
+    model = identify_hidden(record)
+    assert model.metadata["latent"]["verdict"] == "nothing hidden (memoryless force)"
+    assert model.equation("x2").names == ["F", "x1", "x2", "x1**3"]
+    assert -model.equation("x2").coef("x1**3") == pytest.approx(3e9 / 1.5, rel=5e-3)
+    assert model.equation("x3").terms == ()
+
+
+# -- errors --------------------------------------------------------------------------------------------
+def test_settings_outside_the_one_identified_are_refused():
+    t = np.arange(64) / FS
+    record = symsbl.Trajectory(t, np.sin(t)[:, None], np.cos(t)[:, None], ("x1",), ("F",))
+    x1, x2, x3, x4, F = symsbl.symbols("x1 x2 x3 x4 F")
+    library = symsbl.paper([x1, x2, x3, x4], [F], degree=2)
+    with pytest.raises(symsbl.DataError, match=r"^states: expected a position, its velocity and one latent state"):
+        symsbl.identify(record, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
+    with pytest.raises(symsbl.DataError, match=r"^data: expected one record when a state is latent, received 2"):
+        symsbl.identify([record, record], library, states=("x1", "x2", "x3"), kinematics="x1:x2")
