@@ -165,3 +165,27 @@ def test_settings_outside_the_one_identified_are_refused():
         symsbl.identify(record, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
     with pytest.raises(symsbl.DataError, match=r"^data: expected one record when a state is latent, received 2"):
         symsbl.identify([record, record], library, states=("x1", "x2", "x3"), kinematics="x1:x2")
+
+
+def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, capsys):
+    from symsbl._cli import main
+
+    system = symsbl.systems.bouc_wen(**CASES["n1"])
+    record, _ = periodic_record(system, noise=0.01)
+    symsbl.write_trajectory(record, tmp_path / "train.csv")
+    held, _ = periodic_record(system, rms=24.0, seed=7, periods=2, noise=0.0)
+    symsbl.write_trajectory(held, tmp_path / "held.csv")
+    code = main(["identify", str(tmp_path / "train.csv"), "--states", "x1,x2,x3", "--inputs", "F",
+                 "--kinematics", "x1:x2", "--json", str(tmp_path / "model.json"), "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "x3: latent (not measured); scaled so that its coefficient in x2' is" in out
+    assert "latent state x3: hidden; log evidence by branch: linear" in out
+    doc = json.loads((tmp_path / "model.json").read_text())
+    assert doc["measured"] == ["x1"] and list(doc["latent"]) == ["x3"]
+    assert doc["latent"]["x3"].startswith("scaled so that its coefficient in x2' is -")
+    code = main(["validate", str(tmp_path / "model.json"), str(tmp_path / "held.csv"), "--json",
+                 str(tmp_path / "val.json"), "--quiet"])
+    assert code == 0
+    # the held-out record starts in steady state; its unmeasured initial velocity and force are fitted
+    assert json.loads((tmp_path / "val.json").read_text())["nrmse"]["x1"] < 0.01
