@@ -198,7 +198,10 @@ def figure2(
     fig = new_figure(figsize=(15, 4.2), layout="constrained")
     ax_a, ax_b, ax_c = fig.subplots(1, 3, width_ratios=[1, 1.5, 1.2])
     _phase_portrait(ax_a, data)
-    _response(ax_b, model, validation, shown, window)
+    # a latent state has no measured response: panel (b) then shows the first measured state
+    measured = validation.measured.state_names
+    response = shown if shown in measured else next(n for n in model.state_names if n in measured)
+    _response(ax_b, model, validation, response, window)
     if equation.terms:
         _coefficients(ax_c, equation)
     else:

@@ -168,6 +168,8 @@ def test_settings_outside_the_one_identified_are_refused():
 
 
 def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, capsys):
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
     from symsbl._cli import main
 
     system = symsbl.systems.bouc_wen(**CASES["n1"])
@@ -185,7 +187,8 @@ def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, 
     assert doc["measured"] == ["x1"] and list(doc["latent"]) == ["x3"]
     assert doc["latent"]["x3"].startswith("scaled so that its coefficient in x2' is -")
     code = main(["validate", str(tmp_path / "model.json"), str(tmp_path / "held.csv"), "--json",
-                 str(tmp_path / "val.json"), "--quiet"])
+                 str(tmp_path / "val.json"), "--plot", str(tmp_path / "fig.png"), "--quiet"])
     assert code == 0
+    assert (tmp_path / "fig.png").stat().st_size > 10_000  # Figure 2: panel (b) shows x1, panel (c) the law of x3
     # the held-out record starts in steady state; its unmeasured initial velocity and force are fitted
     assert json.loads((tmp_path / "val.json").read_text())["nrmse"]["x1"] < 0.01
