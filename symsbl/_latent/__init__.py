@@ -5,7 +5,8 @@ position-velocity pair is latent. Its equation cannot be regressed, so :func:`id
 reconstructs it, screens its law and settles the structure by output error on what is measured:
 
 1. :mod:`.periodic`: the record is cut into the whole periods of its input and averaged; the
-   scatter of the periods gives the noise of every spectral bin;
+   scatter of the periods gives the noise of every spectral bin (a record whose input does not
+   repeat is taken whole, its ends left out of the regressions);
 2. :mod:`.skeleton` (stage 1): the linear skeleton ``m y'' + c y' + k y = u`` by frequency-domain
    output error;
 3. :mod:`.skeleton` and :mod:`.law` (stage 3): the split of ``(m, c, k)`` that leaves the hidden
@@ -36,13 +37,11 @@ from .._library import Library, Term
 from .._model import IdentifiedModel
 from .branches import Branches, Screened
 from .law import WeakForm, evaluate, homogeneous_terms, screen
-from .periodic import Periods, Spectra, split_periods
+from .periodic import Periods, Spectra, split_periods, whole_record
 from .skeleton import fit_linear, split
 
 __all__ = ["identify_latent", "latent_states", "Periods", "Spectra", "split_periods"]
 
-#: Output-error refinement settings of every branch (band-limited periodic input).
-REFINE_DEFAULTS = {"interpolation": "periodic"}
 #: RK4 resolution of the input's fastest line, ``omega_max h``: the response is driven up to ``f_max``, which
 #: the model's own modes (what ``substeps="auto"`` looks at) do not see; RK4's phase error per step is
 #: ``(omega h)^5 / 120``, 4e-5 here. Measured on the benchmark (``f_max / f_s = 0.2``): 2 substeps (the
@@ -87,7 +86,9 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     Parameters
     ----------
     trajectories : list of Trajectory
-        One record of whole periods of a periodic input, holding the position and the input.
+        One record holding the position and the input: whole periods of a periodic input (best: the
+        noise is then measured by the periods' scatter and the derivatives are exact), or a transient
+        record of a broadband input.
     library : Library
         Candidates over the states and the input; the law of the latent state uses its homogeneous
         terms in (velocity, latent), the memoryless alternative its homogeneous terms in (position, velocity).
@@ -111,27 +112,32 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     record = trajectories[0]
     (y, v), z, u = pairs[0], latent[0], record.input_names[0]
     periods = split_periods(record.t, record.column(u), record.column(y))
-    stages = _screen(Spectra(periods), library, y, v, z, u, clock)
+    periodic = periods is not None
+    if not periodic:
+        periods = whole_record(record.t, record.column(u), record.column(y))
+    stages = _screen(Spectra(periods, periodic), library, y, v, z, u, clock)
     symbols = {s.name(): s for s in library.variables}
     builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
     starts = builder.starts(stages)
     substeps = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
-    options = {**REFINE_DEFAULTS, "substeps": substeps, **(refine_options or {})}
+    options = {"interpolation": "periodic" if periodic else "cubic", "substeps": substeps, **(refine_options or {})}
     data = record.slice(periods.start)
     fits, caught = {}, {}
     from .._refine import refine
 
+    candidates = stages.candidates(library.variables, y, v, z, u)
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
-            fits[name] = refine(start, data, **options)
+            fits[name] = refine(start, data, library=candidates.get(name), **options)
         clock(f"{name} branch")
     verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
     for w in caught[best]:  # the losing branches' warnings say only that they lose
         warnings.warn(w.message, w.category, stacklevel=3)
     final = builder.with_latent(fits[best], keep=(verdict == "hidden"))
     summary = {
-        "verdict": verdict, "latent": z, "period_samples": periods.length, "periods": periods.n_periods,
+        "verdict": verdict, "latent": z, "periodic": periodic,
+        "period_samples": periods.length if periodic else None, "periods": periods.n_periods if periodic else 0,
         "dropped_periods": periods.dropped, "f_max": stages.spectra.f_max,
         "noise_std_of_average": math.sqrt(stages.spectra.noise_var),
         "linear_skeleton": stages.linear.to_json(), "split_skeleton": stages.skeleton.to_json(),

@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 import sympy as sp
 
+from .._library import Library
 from .._model import Equation, IdentifiedModel, TermEstimate
 from .periodic import Spectra
 from .skeleton import Skeleton
@@ -54,6 +55,19 @@ class Screened:
     @property
     def n_candidates(self) -> int:
         return len(self.law_terms) + len(self.force_terms)
+
+    def candidates(self, variables, y: str, v: str, z: str, u: str) -> dict:
+        """The libraries the output-error selection of each branch screens for terms the weak-form screen
+        missed (at 2 % noise a Bouc-Wen law of exponent 2 lost its ``v z^2`` to three look-alikes that fit
+        the record as well; the output-error score finds it): the force candidates for the memoryless
+        branch, the law's and the force's for the hidden one."""
+        by_name = {s.name(): s for s in variables}
+        visible = [by_name[n] for n in (y, v, u)]
+        out = {}
+        if self.force_terms:
+            out["memoryless"] = Library(list(self.force_terms), visible)
+        out["hidden"] = Library(list(self.law_terms) + list(self.force_terms), visible + [by_name[z]])
+        return out
 
 
 class Branches:
@@ -122,6 +136,8 @@ class Branches:
         scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
         penalty = 0.5 * math.log(n_samples) + math.log(max(n_candidates, 2))
         visible = max(("linear", "memoryless"), key=scores.get)
+        if len(fits["memoryless"].equation(self.v).terms) <= 3:  # its selection removed every force term
+            visible = "linear"
         law = fits["hidden"].equation(self.z).terms
         if law and not self.integrable(law) and scores["hidden"] > scores[visible] + penalty:
             return "hidden", "hidden", scores

@@ -79,7 +79,9 @@ class WeakForm:
         self.spectra = spectra
         self.f_pass, self.f_stop = spectra.f_max / 4, spectra.f_max / 2
         self.H = raised_cosine(spectra.f, self.f_pass, self.f_stop)
-        self.n_eff = float(min(spectra.N, spectra.N * 2 * self.f_stop / spectra.fs))
+        self.rows = np.flatnonzero(spectra.valid)
+        n = self.rows.size
+        self.n_eff = float(min(n, n * 2 * self.f_stop / spectra.fs))
 
     def filter(self, x: np.ndarray) -> np.ndarray:
         """``H`` applied to each column of ``x`` (periodic)."""
@@ -94,8 +96,8 @@ class WeakForm:
     def unexplained(self, columns_of, m: float, c: float, k: float, linear: int) -> float:
         """Split criterion: residual of the full law over the residual of the ``linear`` column alone."""
         z = self.spectra.force(m, c, k)
-        lhs = self.derivative(z)
-        A = self.filter(columns_of(z))
+        lhs = self.derivative(z)[self.rows]
+        A = self.filter(columns_of(z))[self.rows]
         A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
 
         def rss(B):
@@ -105,7 +107,8 @@ class WeakForm:
         return rss(A) / max(rss(A[:, [linear]]), 1e-300)
 
     def stats(self, A: np.ndarray, target: np.ndarray) -> GramStats:
-        """Gram statistics of the filtered rows, weighted to their effective count ``n_eff``."""
+        """Gram statistics of the filtered rows the regressions use, weighted to their effective count ``n_eff``."""
+        A, target = A[self.rows], target[self.rows]
         w = self.n_eff / A.shape[0]
         gram, dty = A.T @ A, A.T @ target[:, None]
         return GramStats(w * gram, w * dty, w * np.array([target @ target]), w * np.array([target.sum()]),

@@ -62,7 +62,11 @@ class Skeleton:
 
 
 def fit_linear(spectra: Spectra) -> Skeleton:
-    """Stage 1: ``(m, c, k)`` by frequency-domain output error on the excited bins of the average."""
+    """Stage 1: ``(m, c, k)`` by frequency-domain output error on the excited bins of the average; for a
+    transient record (no periodic steady state, so no exact frequency response), by least squares of
+    ``u = m y'' + c y' + k y`` on its band-limited samples away from the ends."""
+    if not spectra.periodic:
+        return _fit_linear_record(spectra)
     exc = spectra.excited
     w = spectra.iw.imag[exc]
     U, Y = spectra.Uf[exc], spectra.Yf[exc]
@@ -83,6 +87,18 @@ def fit_linear(spectra: Spectra) -> Skeleton:
     cov = np.linalg.pinv(J.T @ J) * (2 * sol.cost / dof)
     rms = float(np.sqrt(2 * 2 * sol.cost) / spectra.N)  # Parseval over one period (rfft: both halves)
     return Skeleton(*(sol.x * scale), std=tuple(np.sqrt(np.diag(cov))), criterion=rms, evaluations=int(sol.nfev))
+
+
+def _fit_linear_record(spectra: Spectra) -> Skeleton:
+    keep = spectra.valid
+    A = np.column_stack([spectra.a, spectra.v, spectra.y])[keep]
+    scale = np.linalg.norm(A, axis=0)
+    coef, *_ = np.linalg.lstsq(A / scale, spectra.u[keep], rcond=None)
+    m, c, k = coef / scale
+    residual = spectra.u[keep] - A @ (coef / scale)
+    cov = np.linalg.pinv((A / scale).T @ (A / scale)) * float(residual @ residual) / max(keep.sum() - 3, 1)
+    std = np.sqrt(np.diag(cov)) / scale
+    return Skeleton(m, c, k, std=tuple(std), criterion=float(np.sqrt(np.mean(residual ** 2))), evaluations=1)
 
 
 def split(criterion, linear: Skeleton) -> Skeleton:
