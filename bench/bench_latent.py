@@ -72,8 +72,8 @@ def errors(model, params, law):
 
 def transient(system, seed):
     t = np.arange(4 * N) / FS
-    u = symsbl.Multisine(rms=40.0, f_min=4.0, f_max=100.0, seed=seed + 1, period=16 * PERIOD)
-    return symsbl.simulate(system, t, inputs=u, method="rk4", substeps=8)
+    u = symsbl.Multisine(rms=40.0, f_min=4.0, f_max=100.0, seed=seed + 1, period=16 * PERIOD)(t)
+    return symsbl.simulate(system, t, inputs=symsbl.Sampled(t, u, kind="cubic"), method="rk4", substeps=8)
 
 
 def run(name, params, law, noise, seed, periodic=True):

@@ -113,7 +113,7 @@ def test_library_file(files, capsys, tmp_path):
                                                           r"\(34\), received \d+ rows from 1 record\(s\) with WeakForm"),
         (None, ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
          r"data: expected an input exciting at least 8 frequencies \(the skeleton and the hidden law need a "
-         r"broadband periodic input\), received 1 excited frequencies; use a multisine"),
+         r"broadband input\), received 1 excited frequencies; use a multisine"),
         (None, ["--states", "q,x2", "--inputs", "F", "--kinematics", "q:x2"],
          r"--states q: expected a column of DATA \(the position of each --kinematics pair is measured; its velocity "
          r"and latent states may be absent\), received no such column$"),

@@ -32,7 +32,7 @@ import warnings
 
 import numpy as np
 
-from .._errors import DataError, expected
+from .._errors import DataError, SimulationError, expected
 from .._library import Library, Term
 from .._model import IdentifiedModel
 from .branches import Branches, Screened
@@ -125,12 +125,19 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     fits, caught = {}, {}
     from .._refine import refine
 
-    candidates = stages.candidates(library.variables, y, v, z, u)
+    candidates = stages.candidates(library.variables, z)
+    failed = {}
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
-            fits[name] = refine(start, data, library=candidates.get(name), **options)
+            try:
+                fits[name] = refine(start, data, library=candidates.get(name), **options)
+            except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
+                failed[name] = str(error)
         clock(f"{name} branch")
+    if not fits:
+        raise SimulationError(expected("data", "a record some branch (linear, memoryless, hidden) can simulate",
+                                       f"every refinement diverged: {failed['linear']}", raw=True))
     verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
     for w in caught[best]:  # the losing branches' warnings say only that they lose
         warnings.warn(w.message, w.category, stacklevel=3)
@@ -145,6 +152,7 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
         "screened_force": [stages.force_terms[i - 3].name for i in stages.memory.active_ if i >= 3],
         "branches": {k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
                      for k, f in fits.items()},
+        "failed": failed,
         "seconds": clock.times,
     }
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
