@@ -6,6 +6,7 @@ of a periodic signal, the noise variance that was added, and a brute-force perio
 
 import json
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -215,3 +216,38 @@ def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, 
     assert (tmp_path / "fig.png").stat().st_size > 10_000  # Figure 2: panel (b) shows x1, panel (c) the law of x3
     # the held-out record starts in steady state; its unmeasured initial velocity and force are fitted
     assert json.loads((tmp_path / "val.json").read_text())["nrmse"]["x1"] < 0.01
+
+
+def test_verdict_rules():
+    """The hidden branch wins by more than 1/2 log N + log M nats with a law that is not v g(z); a branch whose
+    refinement diverged is absent; a memoryless branch without a force term is reported as linear."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from symsbl._latent.branches import Branches
+    from symsbl._latent.skeleton import Skeleton
+
+    y, v, z, F = symsbl.symbols("y v z F")
+    branches = Branches((y, v, z), F, "y", "v", "z")
+    skeleton = Skeleton(2.0, 10.0, 5e4)
+
+    def fitted(laws, evidence):
+        model = branches.model(skeleton, [], laws)
+        return dataclasses.replace(model, metadata={"refine": {"log_evidence": evidence}})
+
+    def law(*terms):
+        fit = SimpleNamespace(coef_=np.ones(len(terms)), active_=np.arange(len(terms)), sigma_=np.eye(len(terms)))
+        return [(symsbl.Term(t), fit, i) for i, t in enumerate(terms)]
+
+    hysteresis = law(v, ca.fabs(v) * z, v * ca.fabs(z))
+    penalty = 0.5 * np.log(1000) + np.log(10)  # 5.76 nats
+    linear = fitted([], 100.0)
+    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty + 0.1)},
+                            1000, 10)[:2] == ("hidden", "hidden")
+    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty - 0.1)},
+                            1000, 10)[:2] == ("nothing hidden (linear)", "linear")
+    spring = law(v, v * ca.fabs(z))  # z' = v (1 + |z|): z = G(y), an elastic force
+    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(spring, 1e6)}, 1000, 10)[0] \
+        == "nothing hidden (linear)"
+    assert branches.verdict({"linear": linear, "hidden": fitted(hysteresis, 200.0)}, 1000, 10)[0] == "hidden"
+    assert branches.verdict({"hidden": fitted(hysteresis, -1e9)}, 1000, 10)[:2] == ("hidden", "hidden")
