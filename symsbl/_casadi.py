@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import atexit
 import hashlib
+import itertools
+import os
 import shutil
+import subprocess
 import tempfile
 from collections import OrderedDict
 
@@ -51,6 +54,7 @@ _JIT_CACHE: OrderedDict[tuple, ca.Function] = OrderedDict()
 _JIT_CACHE_SIZE = 64
 _JIT_SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
 _JIT_DIR: str | None = None
+_COUNTER = itertools.count()
 
 
 def uses_ops(exprs, ops=NONSMOOTH_OPS) -> bool:
@@ -146,13 +150,13 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
         _JIT_SEEN.add(key)
         return fn, False
     args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
-    opts = {"jit": True, "compiler": "shell", "jit_cleanup": False,
-            "jit_options": {"directory": _jit_dir(), "flags": _JIT_FLAGS, "compiler": compiler(), "cleanup": False}}
+    wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
     try:
-        compiled = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out(), opts)
-    except RuntimeError as err:
+        compiled = _compile(wrapper)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
         if jit is True:
-            reason = str(err).strip().splitlines()[-1][:200]
+            text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)
+            reason = (text.strip().splitlines() or [str(err)])[-1][:200]
             raise error(expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'",
                                  raw=True)) from None
         return fn, False
@@ -160,6 +164,23 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
     if len(_JIT_CACHE) > _JIT_CACHE_SIZE:
         _JIT_CACHE.popitem(last=False)
     return compiled, True
+
+
+def _compile(fn: ca.Function) -> ca.Function:
+    """``fn`` generated as C, compiled into a shared library by the C compiler and loaded back.
+
+    The compiler runs as a Python subprocess, so Ctrl-C during a compilation interrupts the program.
+    CasADi's own JIT starts it through ``system()``, which ignores SIGINT in the caller while the
+    compiler runs: an interrupt sent to the program in that window was lost, and the run went on.
+    """
+    base = f"{fn.name()}_{next(_COUNTER)}"
+    generator = ca.CodeGenerator(base + ".c", {"with_header": False})
+    generator.add(fn)
+    source = generator.generate(_jit_dir())
+    library = os.path.join(_jit_dir(), base + ".so")
+    subprocess.run([compiler(), *_JIT_FLAGS, "-shared", "-fPIC", source, "-o", library], check=True,
+                   capture_output=True)
+    return ca.external(fn.name(), library)
 
 
 def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: list[np.ndarray]) -> None:

@@ -168,16 +168,6 @@ def test_nothing_hidden_in_a_linear_oscillator():
     assert str(symsbl.IdentifiedModel.from_json(json.dumps(doc, default=float))) == str(model)
 
 
-def test_a_memoryless_spring_is_not_mistaken_for_hysteresis():
-    system = symsbl.systems.duffing(k3=3e9, m=1.5, c=30.0, k=5e4)
-    record, _ = periodic_record(system, noise=0.01, periods=3)
-    model = identify_hidden(record)
-    assert model.metadata["latent"]["verdict"] == "nothing hidden (memoryless force)"
-    assert model.equation("x2").names == ["F", "x1", "x2", "x1**3"]
-    assert -model.equation("x2").coef("x1**3") == pytest.approx(3e9 / 1.5, rel=5e-3)
-    assert model.equation("x3").terms == ()
-
-
 # -- errors --------------------------------------------------------------------------------------------
 def test_settings_outside_the_one_identified_are_refused():
     t = np.arange(64) / FS
