@@ -181,7 +181,7 @@ def _latent_summary(info: dict) -> str:
     """What the latent-state pipeline found, in two lines."""
     branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
     record = (f"{info['periods']} periods of {info['period_samples']} samples; noise of their average"
-              if info.get("periodic", True) else "a transient record; noise")
+              if info["periodic"] else "a transient record; noise")
     return (f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} "
             f"({record} {info['noise_std_of_average']:.3g})")
 

@@ -24,8 +24,8 @@ from ._errors import ParameterError, expected
 from ._library import Library
 from ._model import Equation, IdentifiedModel
 from ._progress import Progress
-from ._kinematics import complete_states, parse_kinematics
-from ._latent import identify_latent, latent_states
+from ._kinematics import complete_states, latent_states, parse_kinematics
+from ._latent import identify_latent
 from ._regression import RegressionStats, as_trajectories, regression_stats
 from ._rvm import RVM
 from ._selection import complexity, fit_rvm, search_support

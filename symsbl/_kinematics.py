@@ -19,7 +19,7 @@ from ._errors import DataError, expected
 from ._trajectory import Trajectory
 from ._weakform import WeakForm
 
-__all__ = ["parse_kinematics", "estimate_velocity", "complete_states"]
+__all__ = ["parse_kinematics", "estimate_velocity", "latent_states", "complete_states"]
 
 
 def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]:
@@ -90,6 +90,13 @@ def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     if half < 3:
         return np.gradient(x, h)
     return savgol_filter(x, 2 * half + 1, 5, deriv=1, delta=h, mode="interp")
+
+
+def latent_states(names: Sequence[str], measured: Sequence[str], pairs) -> tuple[str, ...]:
+    """The states of ``names`` that are neither ``measured`` nor the velocity of a position-velocity pair:
+    latent, with a law of their own that no record holds (see :mod:`symsbl._latent`)."""
+    velocities = {v for _, v in pairs}
+    return tuple(n for n in names if n not in measured and n not in velocities)
 
 
 def complete_states(trajectories: Sequence[Trajectory], states: Sequence[str],

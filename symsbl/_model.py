@@ -25,6 +25,7 @@ import sympy as sp
 
 from ._errors import ParameterError, expected
 from ._format import format_uncertain, pretty
+from ._kinematics import latent_states
 from ._symbolic import casadi_to_sympy
 
 if TYPE_CHECKING:
@@ -289,8 +290,7 @@ class IdentifiedModel:
     def latent_names(self) -> tuple[str, ...]:
         """States that were not measured and are not the velocity of a measured position: their
         equations were found, and their trajectories simulated, with no record of them."""
-        velocities = {v for _, v in self.kinematics}
-        return tuple(n for n in self.state_names if n not in self.measured_names and n not in velocities)
+        return latent_states(self.state_names, self.measured_names, self.kinematics)
 
     def convention(self, name: str) -> str:
         """How the scale (and sign) of the latent state ``name`` is fixed: ``z`` and ``s z`` give the same

@@ -333,8 +333,11 @@ def noise_levels(traj: Trajectory) -> dict[str, float]:
     if not isinstance(traj, Trajectory) or traj.n_samples < 4:
         got = f"{traj.n_samples} samples" if isinstance(traj, Trajectory) else type(traj).__name__
         raise DataError(expected("traj", "a Trajectory of at least 4 samples to estimate its noise", got, raw=True))
-    out = {}
-    for name in list(traj.state_names) + list(traj.input_names):
-        d3 = np.diff(traj.column(name), 3)
-        out[name] = float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))
-    return out
+    return {name: third_difference_std(traj.column(name)) for name in list(traj.state_names) + list(traj.input_names)}
+
+
+def third_difference_std(x: np.ndarray) -> float:
+    """White-noise standard deviation of a sampled signal from its third differences (see :func:`noise_levels`):
+    ``std(diff(x, 3)) = sqrt(20) sigma``, the standard deviation taken robustly (median absolute deviation)."""
+    d3 = np.diff(np.asarray(x, dtype=float), 3)
+    return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / math.sqrt(20.0))

@@ -40,7 +40,7 @@ from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
 from .skeleton import fit_linear, split
 
-__all__ = ["identify_latent", "latent_states", "Periods", "Spectra", "split_periods"]
+__all__ = ["identify_latent", "Periods", "Spectra", "split_periods", "whole_record"]
 
 #: RK4 resolution of the input's fastest line, ``omega_max h``: the response is driven up to ``f_max``, which
 #: the model's own modes (what ``substeps="auto"`` looks at) do not see; RK4's phase error per step is
@@ -48,12 +48,6 @@ __all__ = ["identify_latent", "latent_states", "Periods", "Spectra", "split_peri
 #: model's own rule) left k off by 0.14 % and the test multisine at 2.45e-7 m; 4 (this rule), 0.003 % and
 #: 1.70e-7 m.
 INPUT_RESOLUTION = 0.35
-
-
-def latent_states(names, measured, pairs) -> tuple[str, ...]:
-    """The states of ``names`` that are neither measured nor the velocity of a declared pair."""
-    velocities = {v for _, v in pairs}
-    return tuple(n for n in names if n not in measured and n not in velocities)
 
 
 def _check_setting(trajectories, names, pairs, latent, library: Library):
@@ -125,7 +119,7 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     fits, caught = {}, {}
     from .._refine import refine
 
-    candidates = stages.candidates(library.variables, z)
+    candidates = stages.candidates(library.variables)
     failed = {}
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:

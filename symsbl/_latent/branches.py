@@ -56,7 +56,7 @@ class Screened:
     def n_candidates(self) -> int:
         return len(self.law_terms) + len(self.force_terms)
 
-    def candidates(self, variables, z: str) -> dict:
+    def candidates(self, variables) -> dict:
         """The library the output-error selection of the hidden branch screens for law terms the weak-form
         screen missed: at 2 % noise a Bouc-Wen law of exponent 2 lost its ``v z^2`` to three look-alikes that
         fit the record as well, and the output-error score finds it (+270 nats). The memoryless branch is not

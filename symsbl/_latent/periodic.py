@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import DataError, expected
+from .._trajectory import third_difference_std
 
 __all__ = ["Periods", "Spectra", "split_periods", "whole_record", "raised_cosine", "REPEAT_TOL", "MIN_PERIODS"]
 
@@ -252,5 +253,4 @@ def _noise_floor(Yf: np.ndarray, f: np.ndarray, f_stop: float, y: np.ndarray, n:
     above = f > f_stop
     if above.sum() >= 32:
         return float(np.median(np.abs(Yf[above]) ** 2) / np.log(2) / n)  # |Y|^2 is exponential: median = ln2 mean
-    d3 = np.diff(y, 3)
-    return float((1.4826 * np.median(np.abs(d3 - np.median(d3)))) ** 2 / 20)
+    return third_difference_std(y) ** 2

@@ -72,8 +72,9 @@ def fit_linear(spectra: Spectra) -> Skeleton:
     U, Y = spectra.Uf[exc], spectra.Yf[exc]
     A = np.column_stack([-w ** 2 * Y, 1j * w * Y, Y])   # U = A (m, c, k): equation error, a start
     A2 = np.vstack([A.real, A.imag])
-    start, *_ = np.linalg.lstsq(A2 / np.linalg.norm(A2, axis=0), np.concatenate([U.real, U.imag]), rcond=None)
-    start = start / np.linalg.norm(A2, axis=0)
+    norms = np.linalg.norm(A2, axis=0)
+    start, *_ = np.linalg.lstsq(A2 / norms, np.concatenate([U.real, U.imag]), rcond=None)
+    start = start / norms
     scale = np.maximum(np.abs(start), 1e-300)
 
     def residual(q):

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .._errors import SimulationError, expected
+from .._trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
 from .sensitivity import Passes
 
@@ -47,12 +48,7 @@ class Solution:
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Per channel, ``1 / sigma^2`` of white noise from third differences (robust: median absolute deviation)."""
-    out = []
-    for c in range(Y.shape[1]):
-        d = np.diff(Y[valid[:, c], c], 3)
-        sigma2 = (1.4826 * np.median(np.abs(d - np.median(d)))) ** 2 / 20.0
-        out.append(1.0 / max(sigma2, 1e-300))
-    return np.array(out)
+    return np.array([1.0 / max(third_difference_std(Y[valid[:, c], c]) ** 2, 1e-300) for c in range(Y.shape[1])])
 
 
 def restrict(H: np.ndarray, g: np.ndarray | None, active: np.ndarray, npar: int):
