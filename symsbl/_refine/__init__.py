@@ -28,14 +28,13 @@ import warnings
 import numpy as np
 
 from .._checks import choice, integer
-from .._discrepancy.locate import effective_fraction
 from .._errors import ParameterError, RefineWarning, SimulationError, expected
 from .._library import Library
 from .._model import IdentifiedModel
 from .._progress import Progress
 from .._trajectory import Trajectory
 from .candidates import Rebased, candidates as propose, extend, prior
-from .engine import Engine, Settings, stopwatch, to_model
+from .engine import Engine, Settings, residual_fraction, stopwatch, to_model
 from .problem import INTERPOLATIONS, check_records, window_plan
 from .screen import screen_terms
 from .selection import penalty, select as select_terms
@@ -195,27 +194,14 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
             # a residual still correlated with every candidate in (unmodelled dynamics, a closed loop) carries
             # fewer independent samples than it counts: each term must then earn proportionally more
             sol = select_terms(engine, sol, alpha,
-                               lambda wide: penalty(n_obs, n_candidates) / _effective_fraction(engine, wide))
+                               lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide))
             bar.update()
-        fraction = _effective_fraction(engine, sol)
+        fraction = residual_fraction(engine, sol)
     info = {"refine": {
         "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
         "effective_fraction": round(fraction, 4)}}
     return to_model(engine, sol, info), screened
-
-
-def _effective_fraction(engine: Engine, sol) -> float:
-    """``N_eff / N`` of the output-error residual at the fit (the smallest over the measured channels; 1 for
-    white residuals), from its autocorrelation as in the discrepancy workflow."""
-    passes = engine.passes
-    passes.use_segments(sol.starts)
-    n = passes.records.n_total
-    with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.simulate(sol.theta, sol.X0)[:, list(passes.records.measured)]
-    valid = passes.valid[:n] & np.isfinite(R)
-    fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
-    return max(min(fractions, default=1.0), 1e-3)
 
 
 def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, options: dict | None = None,

@@ -26,7 +26,7 @@ from .selection import free_positions, with_terms
 from .sensitivity import Passes
 from .solver import Solution, fit
 
-__all__ = ["Engine", "Settings", "to_model", "stopwatch"]
+__all__ = ["Engine", "Settings", "to_model", "stopwatch", "residual_fraction"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -41,12 +41,15 @@ class Settings:
 
 
 def _smoothing_widths(model: IdentifiedModel, records) -> dict:
-    """Per state, the width ``eps`` of ``tanh(x / eps)`` that stands for ``sign(x)`` while fitting."""
+    """Per state, the width ``eps`` of ``tanh(x / eps)`` that stands for ``sign(x)`` while fitting: about 3e-4
+    of the state's standard deviation, rounded to a power of two."""
     widths = {}
     for name in model.state_names:
         cols = [r.column(name) for r in records if name in r.state_names]
         scale = float(np.std(np.concatenate(cols))) if cols else 1.0
-        widths[name] = 3e-4 * (scale if scale > 0 else 1.0)
+        # on a grid of powers of two: records of similar scale (folds, windows, bootstrap copies) give the same
+        # expressions and so share one compiled function
+        widths[name] = 2.0 ** round(math.log2(3e-4 * (scale if scale > 0 else 1.0)))
     return widths
 
 
@@ -126,6 +129,21 @@ class Engine:
         from the segments and initial states of ``warm`` when given."""
         return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
                    length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm)
+
+
+def residual_fraction(engine: Engine, sol: Solution) -> float:
+    """``N_eff / N`` of the output-error residual at ``sol`` (the smallest over the measured channels; 1 for
+    white residuals), from its autocorrelation (:func:`symsbl._discrepancy.locate.effective_fraction`)."""
+    from .._discrepancy.locate import effective_fraction
+
+    passes = engine.passes
+    passes.use_segments(sol.starts)
+    n = passes.records.n_total
+    with np.errstate(all="ignore"):
+        R = passes.records.Y - passes.simulate(sol.theta, sol.X0)[:, list(passes.records.measured)]
+    valid = passes.valid[:n] & np.isfinite(R)
+    fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
+    return max(min(fractions, default=1.0), 1e-3)
 
 
 def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
