@@ -213,13 +213,23 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
-    from ._discrepancy import discrepancy
+    from ._discrepancy import catalogue, discrepancy
+    from ._discrepancy.inputs import describe_effects, read_effects
 
+    effects = catalogue(read_effects(args.effects) if args.effects else ())
+    if args.list_effects:
+        print(describe_effects(effects))
+        return 0
+    for value, name in ((args.data, "DATA"), (args.states, "--states"), (args.base, "--base")):
+        if not value:
+            raise DataError(expected(name, "a value (or --list-effects alone)", "none", raw=True))
     states, inputs = _names(args.states), _names(args.inputs)
-    _outputs(args, [args.data, args.held_out])
+    _outputs(args, [args.data, args.held_out, args.effects])
     traj = _read(args, args.data, states, inputs)
     heldout = _read(args, args.held_out, states, inputs) if args.held_out else None
-    report = discrepancy(traj, args.base, heldout=heldout, error=args.error)
+    report = discrepancy(traj, args.base, heldout=heldout, error=args.error, effects=effects,
+                         kinematics=args.kinematics or None, evidence=args.evidence,
+                         search_library=not args.no_library)
     print(report)
     if args.json:
         _write_json(args.json, report.to_json())
@@ -245,10 +255,10 @@ def _cmd_demo(args) -> int:
     return 0
 
 
-def _data_options(p, *, states: bool = True) -> None:
-    p.add_argument("data", help="CSV with a header row, .npz or .mat")
+def _data_options(p, *, states: bool = True, optional: bool = False) -> None:
+    p.add_argument("data", nargs="?" if optional else None, help="CSV with a header row, .npz or .mat")
     if states:
-        p.add_argument("--states", required=True, help="comma-separated state columns, e.g. x1,x2")
+        p.add_argument("--states", required=not optional, help="comma-separated state columns, e.g. x1,x2")
         p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
     p.add_argument("--time", default="t", help="time column (default: t; '' for none, then --fs is needed)")
     p.add_argument("--fs", type=float, default=None, metavar="HZ",
@@ -299,8 +309,18 @@ def _add_discrepancy(sub, common) -> None:
 
     p = sub.add_parser("discrepancy", parents=[common],
                        help="find the physical effect a model is missing, add it, show the gain")
-    _data_options(p)
-    p.add_argument("--base", required=True, help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
+    _data_options(p, optional=True)
+    p.add_argument("--base", help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
+    p.add_argument("--kinematics", default="", metavar="X:V[,...]",
+                   help="position:velocity pairs to search, e.g. x1:v1,x2:v2 (default: every base equation 'x: v'); "
+                        "effects between coupled pairs are searched too")
+    p.add_argument("--effects", metavar="FILE", help="user effects, one 'name: expression' line each in x and v "
+                   "(displacement, velocity of a pair), optionally '; dissipative'")
+    p.add_argument("--list-effects", action="store_true", help="print the catalogue (with --effects) and exit")
+    p.add_argument("--evidence", default=None, choices=["output-error", "equation-error"],
+                   help="how effects are scored (default: output-error; equation-error with --error equation)")
+    p.add_argument("--no-library", action="store_true",
+                   help="search the catalogue only (default: library terms outside it are tried too)")
     p.add_argument("--held-out", help="held-out record (default: the last 30 %% of DATA)")
     p.add_argument("--error", default="simulation", choices=list(ERROR_MEASURES),
                    help="held-out error (default: simulation)")

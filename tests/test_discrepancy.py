@@ -1,9 +1,10 @@
 """The discrepancy workflow against known truths: hidden effects, nothing missing, two effects, EMPS.
 
 Data follow the paper's oscillator (m = 1, c = 20, k = 1e4) trained on a 100 N, 10 Hz sine for 3 s
-from rest at 16384 Hz with 0.4 % noise on the states; each hidden effect is small enough that the
-refitted linear model re-simulates the training record within 2x the noise, and is revealed by a
-held-out record at another forcing level.
+from rest with 0.4 % noise on the states (at 4096 Hz, to keep the suite short); each hidden effect
+is small enough that the equation-error refit of the linear model re-simulates the training record
+within 2x the noise, and is revealed by a held-out record at another forcing level. Output-error
+evidence (the default) uses both records.
 """
 
 import json
@@ -36,7 +37,7 @@ from symsbl import (
 from symsbl._cli import main
 from symsbl._discrepancy.catalogue import get_effect
 
-FS = 16384.0
+FS = 4096.0
 NOISE = 0.004
 BASE = "x1: x2; x2: F, x1, x2"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS"
@@ -69,18 +70,20 @@ HIDDEN = {
 }
 
 
-@pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("name", list(HIDDEN))
-def test_hidden_effect_is_named_fitted_and_cuts_the_heldout_error(name, seed):
+def test_hidden_effect_is_named_fitted_and_cuts_the_heldout_error(name):
+    seed = 1
     force, true, held_input = HIDDEN[name]
     train, held = records(oscillator(force), held_input, seed)
-    report = discrepancy(train, BASE, heldout=held, seed=seed)
+    report = discrepancy(train, BASE, heldout=held, seed=seed, rule=symsbl.DecisionRule(n_bootstrap=0))
     first = report.steps[0]
-    assert first.error_train < 2 * NOISE  # the refitted linear model looks fine where it was trained
     assert [a.effect for a in report.added] == [name], report.verdict
-    assert report.added[0].coef == pytest.approx(true, rel=0.10)
-    assert first.error_after < first.error_heldout / 3
-    assert report.verdict == f"added {name}; then nothing missing"
+    assert report.added[0].coef == pytest.approx(true, rel=0.05)
+    # the noise is NOISE x the signal's std: the held-out NRMSE of the truth is NOISE
+    assert first.error_after < 1.1 * NOISE < 1.5 * NOISE < first.error_heldout
+    assert first.confirmation > 0 and first.bayes_factor > 20
+    assert report.added[0].label.startswith(name)
+    assert report.verdict == f"added {report.added[0].label}; then nothing missing"
     if name == "clearance":
         assert report.added[0].shape == pytest.approx(0.008, rel=0.05)
 
@@ -97,28 +100,28 @@ def test_nothing_missing_is_reported_in_at_least_95_percent_of_seeds(case):
     system, channels, base = NULL_CASES[case]
     train0 = simulate(system, time_grid(3.0, FS), inputs=Sine(100.0, 10.0))
     held0 = simulate(system, time_grid(1.5, FS), inputs=Sine(30.0, 14.0))
-    seeds = range(10)
+    seeds = range(3)  # 200 seeds per case in bench/bench_discrepancy.py
     alarms = []
     for seed in seeds:
         report = discrepancy(train0.with_noise(NOISE, seed=seed, channels=channels), base,
                              heldout=held0.with_noise(NOISE, seed=seed + 1000, channels=channels),
-                             seed=seed, rule=symsbl.DecisionRule(n_bootstrap=1))
+                             seed=seed, rule=symsbl.DecisionRule(n_bootstrap=0))
         if report.added or report.steps[0].decision != "nothing missing":
             alarms.append((seed, report.verdict))
-    assert len(alarms) <= 0.05 * len(seeds), alarms
+    assert not alarms, alarms
 
 
 def test_two_hidden_effects_are_found_in_two_iterations():
     system = oscillator(lambda x, v: 1.0 * ca.sign(v) + 3.8e5 * x**3)
     train, held = records(system, Sine(30.0, 14.0), seed=3)
-    report = discrepancy(train, BASE, heldout=held, seed=3)
-    assert [a.effect for a in report.added] == ["coulomb_friction", "cubic_stiffness"]
-    assert [s.decision for s in report.steps] == ["added", "added", "nothing missing"]
+    report = discrepancy(train, BASE, heldout=held, seed=3, rule=symsbl.DecisionRule(n_bootstrap=0))
+    assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict
+    assert report.steps[-1].decision == "nothing missing"
     eq = report.final.equation("x2")
     assert eq.coef("sign(x2)") == pytest.approx(-1.0, rel=0.1)
     assert eq.coef("x1**3") == pytest.approx(-3.8e5, rel=0.1)
     assert eq.coef("x2") == pytest.approx(-20.0, rel=0.02)
-    assert report.steps[-1].error_heldout < report.steps[0].error_heldout / 3
+    assert report.steps[-1].error_heldout < 1.1 * NOISE < 1.25 * NOISE < report.steps[0].error_heldout
 
 
 def test_a_user_effect_is_found_by_name():
@@ -135,7 +138,8 @@ def test_report_text_json_and_localisation():
     train, held = records(oscillator(force), held_input, seed=5)
     report = discrepancy(train, BASE, heldout=held, rule=symsbl.DecisionRule(n_bootstrap=0))
     text = str(report)
-    for part in ("model before:", "where it disagrees:", "candidates", "decision: added coulomb_friction",
+    for part in ("model before:", "where it disagrees:", "candidates (output-error evidence",
+                 "decision: added coulomb_friction", "Bayes factor", "cross-validated predictive log likelihood",
                  "model after:", "held-out simulation error:", "Fc = "):
         assert part in text
     where = report.steps[0].disagreement
@@ -147,6 +151,8 @@ def test_report_text_json_and_localisation():
     (added,) = doc["added"]
     assert added["effect"] == "coulomb_friction" and added["term"] == "sign(x2)"
     assert added["error_after"] < added["error_before"] / 3
+    assert added["bayes_factor"] > 20 and added["runner_up"] and added["confirmation"] > 0
+    assert doc["evidence"] == "output-error" and doc["steps"][0]["evidence"] == "output-error"
     assert doc["final"]["states"] == ["x1", "x2"] and doc["final"]["equations"][1]["lhs"] == "x2"
     assert "sign(x2)" in doc["final"]["equations"][1]["rhs"]
 
@@ -201,14 +207,15 @@ def test_emps_full_record_with_the_pulses_record_held_out():
 
 
 # ------------------------------------------------------------------------------ command line
-def test_cli_discrepancy_writes_the_json_contract(tmp_path, capsys):
+def test_cli_discrepancy_writes_the_json_contract_and_the_figure(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
     force, _, held_input = HIDDEN["coulomb_friction"]
     train, held = records(oscillator(force), held_input, seed=7)
     write_trajectory(train, tmp_path / "train.npz")
     write_trajectory(held, tmp_path / "held.csv")
-    out = tmp_path / "report.json"
+    out, png = tmp_path / "report.json", tmp_path / "report.png"
     code = main(["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
-                 "--base", BASE, "--held-out", str(tmp_path / "held.csv"), "--json", str(out)])
+                 "--base", BASE, "--held-out", str(tmp_path / "held.csv"), "--json", str(out), "--plot", str(png)])
     printed = capsys.readouterr().out
     assert code == 0
     assert "decision: added coulomb_friction" in printed and "model after:" in printed
@@ -218,19 +225,7 @@ def test_cli_discrepancy_writes_the_json_contract(tmp_path, capsys):
     assert set(added) >= {"effect", "term", "coef", "std", "evidence_gain", "error_before", "error_after"}
     assert added["effect"] == "coulomb_friction" and added["coef"] == pytest.approx(-1.0, rel=0.1)
     assert set(doc["final"]) >= {"states", "inputs", "equations"}
-
-
-def test_cli_discrepancy_writes_the_figure(tmp_path, capsys):
-    pytest.importorskip("matplotlib")
-    force, _, held_input = HIDDEN["coulomb_friction"]
-    train, held = records(oscillator(force), held_input, seed=7)
-    write_trajectory(train, tmp_path / "train.npz")
-    write_trajectory(held, tmp_path / "held.npz")
-    png = tmp_path / "report.png"
-    code = main(["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
-                 "--base", BASE, "--held-out", str(tmp_path / "held.npz"), "--plot", str(png)])
-    assert code == 0
-    assert f"figure written to {png}" in capsys.readouterr().out
+    assert f"figure written to {png}" in printed
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
@@ -304,15 +299,132 @@ def test_catalogue_errors_and_lookup():
     assert len(CATALOGUE) >= 7
 
 
-def test_a_close_runner_up_gives_ambiguous_and_no_heldout_gain_is_not_added():
+def test_equation_error_evidence_keeps_its_ambiguous_and_held_out_rules():
     force, _, held_input = HIDDEN["coulomb_friction"]
     train, held = records(oscillator(force), held_input, seed=2)
-    ambiguous = discrepancy(train, BASE, heldout=held, rule=symsbl.DecisionRule(n_bootstrap=0, margin_nats=1e6))
+    ambiguous = discrepancy(train, BASE, heldout=held, evidence="equation-error",
+                            rule=symsbl.DecisionRule(n_bootstrap=0, margin_nats=1e6))
     (step,) = ambiguous.steps
     runner = next(c for c in step.scores[1:] if c.admissible)
-    assert step.decision == "ambiguous" and not ambiguous.added
+    assert step.decision == "ambiguous" and not ambiguous.added and step.evidence == "equation-error"
     assert ambiguous.verdict.startswith(f"ambiguous between coulomb_friction and {runner.effect}")
     same_level = records(oscillator(force), Sine(100.0, 10.0), seed=2)[1]
-    unconfirmed = discrepancy(train, BASE, heldout=same_level, rule=symsbl.DecisionRule(n_bootstrap=0, min_improvement=0.9))
+    unconfirmed = discrepancy(train, BASE, heldout=same_level, evidence="equation-error",
+                              rule=symsbl.DecisionRule(n_bootstrap=0, min_improvement=0.9))
     assert unconfirmed.steps[0].decision == "no held-out gain" and not unconfirmed.added
     assert "does not lower the held-out error enough" in unconfirmed.verdict
+
+
+# ------------------------------------------------------------- output-error evidence, past the paper
+M, C, K, FRMS, FS_OE = 2.0, 6.0, 3e4, 20.0, 2000.0
+
+
+def light_oscillator(force) -> OdeSystem:
+    """A lightly damped oscillator unlike the paper's: m = 2, c = 6, k = 3e4 (zeta = 0.012)."""
+    x, v, F = ca.SX.sym("x"), ca.SX.sym("v"), ca.SX.sym("F")
+    return OdeSystem((x, v), (F,), (v, (F - C * v - K * x - force(x, v)) / M), (), (), "light")
+
+
+def multisine_records(system, seed, noise=0.01, train_s=4.0):
+    """A 2-60 Hz multisine of 20 N RMS for training, another at a quarter of the force held out."""
+    train = simulate(system, time_grid(train_s, FS_OE), inputs=symsbl.Multisine(rms=FRMS, f_min=2.0, f_max=60.0,
+                                                                                seed=1 + seed), method="rk4")
+    held = simulate(system, time_grid(2.0, FS_OE), inputs=symsbl.Multisine(rms=FRMS / 4, f_min=2.0, f_max=60.0,
+                                                                             seed=100 + seed), method="rk4")
+    return train, held, train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 1)
+
+
+def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
+    fc = 0.005 * FRMS * np.sqrt(2)  # 0.5 % of the force amplitude
+    clean_train, clean_held, train, held = multisine_records(light_oscillator(lambda x, v: fc * ca.sign(v)), seed=3)
+    report = discrepancy(train, "x: v; v: F, x, v", heldout=held, rule=symsbl.DecisionRule(n_bootstrap=1))
+    assert [a.effect for a in report.added] == ["coulomb_friction"], report.verdict
+    assert report.added[0].physical == pytest.approx(fc, rel=0.05)
+    step = report.steps[0]
+    assert step.error_heldout > 5 * 0.01 and step.residual_ratio > 2  # the linear model is far above the noise
+    truth = symsbl.validate_model(report.final, clean_held, method="rk4")
+    assert max(truth.nrmse.values()) < 0.01  # the final model re-simulates the clean held-out record within 1 %
+    assert report.steps[-1].decision == "nothing missing" and report.steps[-1].residual_ratio < 1.2
+
+
+def test_a_term_outside_the_catalogue_is_reported_symbolically():
+    X = 6e-3  # about the displacement amplitude
+    kq = 0.05 * FRMS * np.sqrt(2) / X**2  # 5 % of the force at the peaks
+    _, clean_held, train, held = multisine_records(light_oscillator(lambda x, v: kq * x**2), seed=4)
+    report = discrepancy(train, "x: v; v: F, x, v", heldout=held, rule=symsbl.DecisionRule(n_bootstrap=0))
+    (added,) = report.added
+    assert added.family == "not in the catalogue" and added.terms == ("x**2",), report.verdict
+    assert added.coef == pytest.approx(-kq / M, rel=0.05)
+    assert "added a term not in the catalogue: x**2" in report.steps[0].verdict
+    assert "the closest named effects explain less" in report.steps[0].verdict
+    assert report.verdict == "added x**2 (not in the catalogue); then nothing missing"
+    assert max(symsbl.validate_model(report.final, clean_held, method="rk4").nrmse.values()) < 0.01
+
+
+def chain(extra_on):
+    """Two masses, the force on the first; a cubic spring to ground on mass ``extra_on`` (1 or 2)."""
+    x1, v1, x2, v2, F = (ca.SX.sym(n) for n in ("x1", "v1", "x2", "v2", "F"))
+    m1, m2, k3 = 1.5, 0.8, 1.3e7
+    f1 = k3 * x1**3 if extra_on == 1 else 0
+    f2 = k3 * x2**3 if extra_on == 2 else 0
+    rhs = (v1, (F - 3 * v1 - 2e4 * x1 - 2 * (v1 - v2) - 1.2e4 * (x1 - x2) - f1) / m1, v2,
+           (-2 * (v2 - v1) - 1.2e4 * (x2 - x1) - f2) / m2)
+    return OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "chain"), -k3 / (m1 if extra_on == 1 else m2)
+
+
+def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path, capsys):
+    system, true = chain(2)
+    _, clean_held, train, held = multisine_records(system, seed=5, train_s=3.0)
+    write_trajectory(train, tmp_path / "train.csv")
+    write_trajectory(held, tmp_path / "held.csv")
+    out = tmp_path / "report.json"
+    code = main(["discrepancy", str(tmp_path / "train.csv"), "--states", "x1,v1,x2,v2", "--inputs", "F",
+                 "--base", "x1: v1; v1: F, x1, v1, x2, v2; x2: v2; v2: x1, v1, x2, v2",
+                 "--kinematics", "x1:v1,x2:v2", "--held-out", str(tmp_path / "held.csv"), "--json", str(out)])
+    assert code == 0, capsys.readouterr()
+    doc = json.loads(out.read_text())
+    (added,) = doc["added"]
+    assert (added["effect"], added["where"]) == ("cubic_stiffness", "x2, v2")
+    assert added["coef"] == pytest.approx(true, rel=0.05)
+    assert added["runner_up"] and added["bayes_factor"] > 20
+    final = symsbl.IdentifiedModel.from_json(doc["final"])
+    assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
+
+
+def test_predictive_log_likelihood_of_the_truth_is_the_gaussian_closed_form():
+    from symsbl._discrepancy.confirm import predictive_log_likelihood
+    from symsbl._refine.engine import Settings
+
+    system = light_oscillator(lambda x, v: 0 * v)
+    _, _, train, held = multisine_records(system, seed=6)
+    model = symsbl.refine(symsbl.identify(train, symsbl.polynomial(list(system.states), 1)
+                                          + symsbl.inputs(list(system.inputs))), [train])
+    sigma = np.array([noise_levels(held)[n] for n in held.state_names])
+    ll = predictive_log_likelihood(model, held, held.state_names, Settings(), 1 / sigma**2)
+    n = held.n_samples
+    expected_ll = float(np.sum(-0.5 * n * (1 + np.log(2 * np.pi * sigma**2))))
+    # the residual is the noise: chi^2 with 2n degrees of freedom, std sqrt(2n)/2 ~ 45 nats
+    assert abs(ll - expected_ll) < 4 * np.sqrt(2 * n) / 2 + 0.01 * abs(expected_ll), (ll, expected_ll)
+
+
+def test_cli_lists_the_catalogue_and_reads_user_effects(tmp_path, capsys):
+    assert main(["discrepancy", "--list-effects"]) == 0
+    listed = capsys.readouterr().out
+    for e in CATALOGUE:
+        assert e.name in listed
+    effects = tmp_path / "effects.txt"
+    effects.write_text("# my effects\nvan_der_pol: x**2*v\nstribeck: sign(v)*exp(-(v/0.01)**2); dissipative\n")
+    before = effects.read_bytes()
+    assert main(["discrepancy", "--list-effects", "--effects", str(effects)]) == 0
+    listed = capsys.readouterr().out
+    assert "van_der_pol" in listed and "stribeck" in listed and "must dissipate" in listed
+    assert effects.read_bytes() == before
+    bad = tmp_path / "bad.txt"
+    bad.write_text("stribeck sign(v)\n")
+    assert main(["discrepancy", "--list-effects", "--effects", str(bad)]) == 2
+    assert f"--effects {bad}, line 1: expected 'name: expression'" in capsys.readouterr().err
+    bad.write_text("drag: v*Abs(y)\n")
+    assert main(["discrepancy", "--list-effects", "--effects", str(bad)]) == 2
+    assert "expected a variable among ['v', 'x']" in capsys.readouterr().err
+    assert main(["discrepancy", "--states", "x,v"]) == 2
+    assert "DATA: expected a value (or --list-effects alone), received none" in capsys.readouterr().err

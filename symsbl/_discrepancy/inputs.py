@@ -9,9 +9,10 @@ import numpy as np
 
 from .._errors import DataError, ExpressionError, LibraryError, expected
 from .._parse import parse_expression
+from .._symbolic import casadi_to_sympy
 from .._trajectory import Trajectory
 
-__all__ = ["parse_base", "position_record", "split_record", "check_record"]
+__all__ = ["parse_base", "read_effects", "describe_effects", "position_record", "split_record", "check_record"]
 
 
 def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str] = ()) -> dict[str, tuple]:
@@ -67,6 +68,74 @@ def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str]
     if missing:
         raise LibraryError(expected("--base", "terms for every state", f"none for {missing}", raw=True))
     return {s: tuple(out[s]) for s in state_names}
+
+
+def read_effects(path) -> tuple:
+    """User effects from a text file, one per line: ``name: expression`` in the displacement ``x`` and the
+    velocity ``v`` of a pair, optionally followed by ``; dissipative`` (the force must oppose the motion, as
+    friction or damping). Blank lines and ``#`` comments are skipped. Nothing is evaluated.
+
+    Examples
+    --------
+    A file with the lines ``stribeck: sign(v)*exp(-(v/0.01)**2); dissipative`` and ``tanh_spring: tanh(x/0.002)``
+    gives two effects named ``stribeck`` and ``tanh_spring``.
+
+    Raises
+    ------
+    LibraryError
+        Naming the file, the line and what is wrong.
+    """
+    import re
+    from pathlib import Path
+
+    from .catalogue import Effect
+
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as err:
+        raise LibraryError(expected("--effects", "a readable text file of 'name: expression' lines", str(path),
+                                    type(err).__name__, raw=True)) from None
+    x, v = ca.SX.sym("x"), ca.SX.sym("v")
+    out = []
+    for number, raw in enumerate(lines, 1):
+        text = raw.split("#", 1)[0].strip()
+        if not text:
+            continue
+        where = f"--effects {path}, line {number}"
+        name, sep, rest = text.partition(":")
+        name = name.strip()
+        body, _, flag = rest.partition(";")
+        if not sep or not re.fullmatch(r"[A-Za-z_]\w*", name) or not body.strip():
+            raise LibraryError(expected(where, "'name: expression' with a Python-style name, e.g. "
+                                        "'stribeck: sign(v)*exp(-(v/0.01)**2); dissipative'", raw))
+        if flag.strip() not in ("", "dissipative"):
+            raise LibraryError(expected(where, "nothing or '; dissipative' after the expression", flag.strip()))
+        try:
+            expr = parse_expression(body.strip(), {"x": x, "v": v}, where=where)
+        except ExpressionError as err:
+            raise LibraryError(str(err)) from None
+        out.append(Effect(name, f"user effect {body.strip()}", "user",
+                          lambda xs, vs, e=expr: ca.substitute(e, ca.vertcat(x, v), ca.vertcat(xs, vs)),
+                          sign=-1 if flag.strip() else 0, coefficient="k"))
+    if not out:
+        raise LibraryError(expected("--effects", "at least one 'name: expression' line", f"none in {path}",
+                                    raw=True))
+    return tuple(out)
+
+
+def describe_effects(effects) -> str:
+    """The catalogue as a table: name, family, term in ``x`` and ``v``, sign rule, description."""
+    x, v = ca.SX.sym("x"), ca.SX.sym("v")
+    rows = []
+    for e in effects:
+        variants = e.variants(x, v, 1.0, 1.0)
+        terms = ", ".join(str(t) for t in casadi_to_sympy(list(variants[0].exprs)))
+        if e.grid:
+            terms += f" (g from {e.grid[0]:g} to {e.grid[-1]:g} of the {e.grid_of} amplitude)"
+        rule = "must dissipate" if e.sign == -1 else "either sign"
+        rows.append(f"{e.name:22s} {e.family:10s} {terms:52s} {rule:15s} {e.description}")
+    header = f"{'effect':22s} {'family':10s} {'term (x: displacement, v: velocity)':52s} {'coefficient':15s} description"
+    return "\n".join([header] + rows)
 
 
 def position_record(t, position, inputs, *, cutoff: float, names=("q", "v"), input_names=("tau",)) -> Trajectory:

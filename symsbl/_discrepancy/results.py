@@ -20,6 +20,8 @@ class Decision(str, enum.Enum):
     NOTHING_MISSING = "nothing missing"
     AMBIGUOUS = "ambiguous"
     NO_HELDOUT_GAIN = "no held-out gain"
+    UNEXPLAINED = "unexplained"
+    REPLACED = "replaced"
 
     def __str__(self) -> str:
         return self.value
@@ -86,6 +88,9 @@ class EffectScore:
     error_after : float or None
         Held-out error of the refitted model with this effect (None when not evaluated).
     shape : float or None
+    where : str
+        The pair the effect acts on (``"x, v"``), or ``"between (x1-x2) and (v1-v2)"``; "" for the
+        equation-error search, which has one pair.
     """
 
     effect: str
@@ -101,6 +106,7 @@ class EffectScore:
     reason: str
     error_after: float | None
     shape: float | None = None
+    where: str = ""
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,22 @@ class DiscrepancyStep:
     added : EffectScore or None
     model_after : IdentifiedModel or None
     error_after : float or None
+    evidence : str
+        ``"output-error"`` or ``"equation-error"``: what the gains are changes of.
+    residual_ratio : float or None
+        Output error: the residual standard deviation of the current model over the measured noise level
+        (largest over records and states); about 1 when nothing is missing.
+    bayes_factor : float or None
+        Evidence ratio of the effect added (or leading) over the runner-up, a different effect.
+    runner_up : str or None
+    confirmation : float or None
+        Output error: the cross-validated predictive log-likelihood change (nats) of adding the effect, each
+        record predicted by fits on the others.
+    separating_experiment : dict or None
+        When ambiguous: the input under which the two fitted models differ most (``input``, ``scale``,
+        ``frequency_hz``, ``difference_noise_std``, ``difference_on_training_input``, ``duration_s``).
+    replaces : str or None
+        When replaced: the label of the earlier addition this step's effect takes the place of.
     """
 
     iteration: int
@@ -140,6 +162,13 @@ class DiscrepancyStep:
     added: EffectScore | None = None
     model_after: IdentifiedModel | None = None
     error_after: float | None = None
+    evidence: str = "equation-error"
+    residual_ratio: float | None = None
+    bayes_factor: float | None = None
+    runner_up: str | None = None
+    confirmation: float | None = None
+    separating_experiment: dict | None = None
+    replaces: str | None = None
 
 
 @dataclass(frozen=True)
@@ -155,6 +184,8 @@ class DiscrepancyReport:
         ``"simulation"`` or ``"equation"``.
     noise : dict
         Estimated noise level per channel.
+    evidence : str
+        ``"output-error"`` or ``"equation-error"``.
     """
 
     initial: IdentifiedModel
@@ -163,30 +194,42 @@ class DiscrepancyReport:
     verdict: str
     error_measure: str
     noise: dict = field(default_factory=dict)
+    evidence: str = "equation-error"
 
     @property
     def added(self) -> list[EffectScore]:
-        """The effects added, in order."""
-        return [s.added for s in self.steps if s.added is not None]
+        """The effects in the final model, in the order they were added (one replaced later is left out)."""
+        return [s.added for s in self._kept()]
+
+    def _kept(self) -> list[DiscrepancyStep]:
+        replaced = {s.replaces for s in self.steps if s.replaces is not None}
+        return [s for s in self.steps if s.added is not None and s.added.label not in replaced]
 
     def to_json(self) -> dict:
         """``{"added": [...], "verdict": ..., "final": <identify JSON>, "steps": [...]}``."""
         added = [
             {"effect": s.added.effect, "term": ", ".join(s.added.terms), "coef": s.added.coef,
              "std": s.added.std, "evidence_gain": s.added.evidence_gain, "physical": s.added.physical,
-             "description": s.added.description, "error_before": s.error_heldout, "error_after": s.error_after}
-            for s in self.steps if s.added is not None
+             "description": s.added.description, "error_before": s.error_heldout, "error_after": s.error_after,
+             "label": s.added.label, "where": s.added.where, "decision": s.decision.value,
+             "bayes_factor": _finite(s.bayes_factor), "runner_up": s.runner_up, "confirmation": s.confirmation,
+             "separating_experiment": s.separating_experiment, "replaces": s.replaces}
+            for s in self._kept()
         ]
         steps = [
             {"iteration": s.iteration, "decision": s.decision.value, "verdict": s.verdict, "threshold": s.threshold,
              "null_gains": list(s.null_gains), "error_train": s.error_train, "error_heldout": s.error_heldout,
-             "where": s.disagreement.summary,
-             "scores": [{"effect": c.label, "evidence_gain": c.evidence_gain, "coef": c.coef, "std": c.std,
-                         "admissible": c.admissible, "error_after": c.error_after} for c in s.scores]}
+             "where": s.disagreement.summary, "evidence": s.evidence, "residual_ratio": s.residual_ratio,
+             "bayes_factor": _finite(s.bayes_factor), "runner_up": s.runner_up, "confirmation": s.confirmation,
+             "separating_experiment": s.separating_experiment, "replaces": s.replaces,
+             "scores": [{"effect": c.label, "evidence_gain": _finite(c.evidence_gain), "coef": _finite(c.coef),
+                         "std": _finite(c.std), "admissible": c.admissible, "error_after": c.error_after,
+                         "name": c.effect, "where": c.where, "family": c.family, "terms": list(c.terms)}
+                        for c in s.scores]}
             for s in self.steps
         ]
         return {"added": added, "verdict": self.verdict, "final": self.final.to_json(),
-                "error_measure": self.error_measure, "steps": steps}
+                "error_measure": self.error_measure, "evidence": self.evidence, "steps": steps}
 
     def __str__(self) -> str:
         lines = ["model before:", _indent(str(self.initial))]
@@ -194,7 +237,7 @@ class DiscrepancyReport:
             lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
                          f"training, {100 * s.error_heldout:.3g} % held out")
             lines.append("where it disagrees: " + s.disagreement.summary)
-            lines.append(f"candidates (threshold {s.threshold:.1f} nats; null gains "
+            lines.append(f"candidates ({s.evidence} evidence; threshold {s.threshold:.1f} nats; null gains "
                          + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):")
             lines.append(f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}")
             for c in s.scores:
@@ -211,6 +254,11 @@ class DiscrepancyReport:
                          f"{100 * after:.3g} % after")
         lines.append("verdict: " + self.verdict)
         return "\n".join(lines)
+
+
+def _finite(x):
+    """A JSON number, or None for infinities and NaN (which JSON cannot hold)."""
+    return None if x is None or not np.isfinite(x) else float(x)
 
 
 def _indent(text: str) -> str:

@@ -100,7 +100,7 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
 def _chunk(step: ca.Function, jit, n_samples: int) -> ca.Function:
     """``CHUNK`` steps of ``step`` (its first input carried), ``theta`` (input 3) given once."""
     key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", CHUNK)
-    cached = jit_lookup(key) if jit is not False else None
+    cached = jit_lookup(key) if jit is not False else _VM_CHUNKS.get(key)
     if cached is not None:
         return cached
     acc = step.mapaccum("steps", CHUNK)
@@ -108,9 +108,18 @@ def _chunk(step: ca.Function, jit, n_samples: int) -> ca.Function:
             else ca.MX.sym(step.name_in(i), step.size1_in(i), CHUNK) for i in range(step.n_in())]
     call = [args[0], args[1], args[2], ca.repmat(args[3], 1, CHUNK), *args[4:]]
     wrapper = ca.Function(f"{step.name()}_chunk", args, [acc(*call)], step.name_in(), step.name_out())
+    if jit is False:  # building the map of a large step takes seconds: kept for the structure's next records
+        _VM_CHUNKS[key] = wrapper
+        while len(_VM_CHUNKS) > 16:
+            _VM_CHUNKS.pop(next(iter(_VM_CHUNKS)))
+        return wrapper
     lazy = jit == "auto" and n_samples < JIT_MIN_SAMPLES
     fn, _ = jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy)
     return fn
+
+
+#: Uncompiled chunk functions of the structures used last, by the key of their step.
+_VM_CHUNKS: dict = {}
 
 
 class Passes:

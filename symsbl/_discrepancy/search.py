@@ -1,0 +1,263 @@
+"""One iteration of the discrepancy search on output-error evidence: score, decide, confirm.
+
+Every candidate (catalogue effects on every pair and between connected pairs, and, beyond the
+catalogue, library terms) is screened, the leaders are refitted, and the best admissible one is
+
+- **added** when its evidence gain clears the threshold (calibrated against "nothing missing") and
+  the cross-validated predictive log likelihood confirms it (:mod:`.confirm`); it is *named* when its
+  Bayes factor over the runner-up is at least ``exp(margin_nats)``; below that the verdict is
+  "ambiguous between A and B" with the odds and the record that would separate them, and the better
+  model is kept;
+- **not confirmed** when it clears the threshold but does not predict the held-out records better;
+- otherwise nothing is added: "nothing missing" when the model's residual is at the measured noise
+  level, "unexplained" when it stands above it.
+
+A library term is chosen only when it beats every catalogue effect; the verdict then says "not in the
+catalogue" and how far the closest named effects fall behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .._errors import SimulationError
+from .._progress import Progress
+from .candidates import reshaped, term_name
+from .confirm import cross_validated_gain, separating_experiment
+from .results import Decision, DiscrepancyStep, EffectScore
+from .scoring import REFITS
+
+__all__ = ["oe_step", "UNEXPLAINED_RATIO"]
+
+#: Residual standard deviation over the measured noise level above which a model is not "nothing missing".
+UNEXPLAINED_RATIO = 1.5
+#: Library terms refitted per iteration at most (besides the catalogue's leaders).
+LIBRARY_REFITS = 2
+#: Refitted candidates whose held-out error is computed (the leaders by evidence).
+HELDOUT_CHECKS = 3
+
+
+def _leaders(candidates, gains: np.ndarray) -> list[int]:
+    """Indices of the best variant of each effect and place, the leading ones first."""
+    best: dict = {}
+    for i, c in enumerate(candidates):
+        score = gains[i] - c.penalty
+        if c.key not in best or score > best[c.key][0]:
+            best[c.key] = (score, i)
+    ranked = sorted(best.values(), key=lambda item: -item[0])
+    named = [i for _, i in ranked if candidates[i].effect is not None][:REFITS]
+    library = [i for _, i in ranked if candidates[i].effect is None][:LIBRARY_REFITS]
+    return named + library
+
+
+def _input_coefficient(model, state: str, input_names) -> float | None:
+    eq = model.equation(state)
+    coefs = [t.coef for t in eq.terms if t.name in input_names]
+    return coefs[0] if len(coefs) == 1 else None
+
+
+def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
+    """The :class:`EffectScore` of candidate ``c`` (``fit``: its refit, None when only screened)."""
+    e = c.effect
+    family = e.family if e is not None else "not in the catalogue"
+    description = e.description if e is not None else f"the library term {c.label}, outside the catalogue"
+    first = c.additions[0][0]
+    ref = _input_coefficient(model, first, run.input_names)
+    if fit is None:
+        return EffectScore(c.name, c.label, description, family, c.terms, lin - c.penalty, math.nan, math.nan, None,
+                           True, "screened only (quadratic model of the evidence)", None, c.shape, where=c.pair.where)
+    coef, std = float(fit["coefs"][0]), float(fit["stds"][0])
+    ok, reason = True, ""
+    if e is not None and e.sign == -1 and ref is not None and coef * ref > 0:
+        ok, reason = False, "wrong sign: it would feed energy in"
+    physical = None if ref is None else -coef / ref
+    gain = _net(fit) - c.penalty
+    return EffectScore(c.name, c.label, description, family, c.terms, gain, coef, std, physical, ok, reason,
+                       run.err(fit["model"], run.heldout) if check else None, c.shape, where=c.pair.where)
+
+
+def _net(fit: dict) -> float:
+    return fit["gain"] * fit["fraction"]
+
+
+#: Shape values tried around the best grid point, in grid steps.
+SHAPE_STEPS = (-0.75, -0.5, -0.25, 0.25, 0.5, 0.75)
+
+
+def _refine_shape(scorer, avail: list, refitted: dict, i: int) -> None:
+    """Refit candidate ``i`` at shape values between its grid neighbours and keep the best (in place): the grid
+    alone leaves the shape (and the coefficient that goes with it) up to half a grid step off."""
+    c = avail[i]
+    grid = sorted({a.shape for a in avail if a.key == c.key})
+    if len(grid) < 2:
+        return
+    step = float(np.min(np.diff(grid)))
+    trial = [reshaped(c, c.shape + d * step) for d in SHAPE_STEPS if c.shape + d * step > 0]
+    for t, fit in zip(trial, scorer.refit(trial)):
+        if fit is not None and _net(fit) > _net(refitted[i]):
+            avail[i], refitted[i] = t, fit
+
+
+def _present(model, c) -> bool:
+    for state, exprs in c.additions:
+        names = set(model.equation(state).names)
+        if not all(term_name(e) in names for e in exprs):
+            return False
+    return True
+
+
+def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep:
+    """One iteration on ``run`` (a :class:`~symsbl._discrepancy.workflow.Workflow` with output-error evidence)
+    from the current structure ``model``, after the steps ``history``."""
+    scorer = run.scorer(model, run.records)
+    fitted = scorer.fitted()
+    err_train, err_held = run.err(fitted, run.data), run.err(fitted, run.heldout)
+    swap = _revisit(run, it, model, scorer, rule, history)
+    if swap is not None:
+        return DiscrepancyStep(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held,
+                               disagreement=run.where(fitted), evidence="output-error",
+                               residual_ratio=run.residual_ratio(scorer), **swap)
+    where = run.where(fitted)
+    # an effect once at a place is not added again (at another shape): its shape was refined when it was added
+    present = run.added_keys | {c.key for c in run.oe_candidates if _present(model, c)}
+    avail = [c for c in run.oe_candidates if c.key not in present]
+    with Progress(f"discrepancy iteration {it}: output-error scores", total=3, unit="stages") as bar:
+        lin = scorer.screen(avail) if avail else np.zeros(0)
+        bar.update()
+        lead = _leaders(avail, lin)
+        fits = scorer.refit([avail[i] for i in lead]) if lead else []
+        bar.update()
+        penalties = np.array([c.penalty for c in avail])
+        null = scorer.null_gains(avail, rule.n_bootstrap, seed, penalties) if avail else []
+        bar.update()
+    refitted = {i: f for i, f in zip(lead, fits) if f is not None}
+    order = sorted(refitted, key=lambda i: -(_net(refitted[i]) - avail[i].penalty))
+    if order and avail[order[0]].shape is not None:
+        _refine_shape(scorer, avail, refitted, order[0])
+    scores = [_score(run, avail[i], refitted[i], fitted, lin[i], check=n < HELDOUT_CHECKS) for n, i in enumerate(order)]
+    seen = {avail[i].key for i in refitted}
+    for i in _leaders(avail, lin):
+        if avail[i].key not in seen and i not in refitted:
+            scores.append(_score(run, avail[i], None, fitted, lin[i]))
+    scores.sort(key=lambda s: -s.evidence_gain if np.isfinite(s.evidence_gain) else math.inf)
+    threshold = max([rule.floor_nats] + [rule.bootstrap_factor * g for g in null])
+    step = dict(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held, disagreement=where,
+                scores=tuple(scores), threshold=threshold, null_gains=tuple(null), evidence="output-error",
+                residual_ratio=run.residual_ratio(scorer))
+    by_label = {(avail[i].label): (avail[i], refitted[i]) for i in refitted}
+    return DiscrepancyStep(**step, **_choose(run, model, scores, by_label, threshold, rule, step["residual_ratio"],
+                                             err_held))
+
+
+def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> dict:
+    """The decision of one iteration, its verdict and, when something is added, the model after."""
+    ranked = [s for s in scores if s.admissible and s.label in by_label and np.isfinite(s.evidence_gain)]
+    named = [s for s in ranked if s.family != "not in the catalogue"]
+    best = ranked[0] if ranked else None
+    if best is not None and best.family == "not in the catalogue" and named:
+        # a library term must beat every named effect by the naming margin, or the named effect is preferred
+        if best.evidence_gain - named[0].evidence_gain < rule.margin_nats:
+            best = named[0]
+    if best is None or best.evidence_gain <= threshold:
+        gain = "none" if best is None else f"{best.evidence_gain:.1f}"
+        if ratio > UNEXPLAINED_RATIO:
+            return dict(decision=Decision.UNEXPLAINED, verdict=(
+                f"unexplained: no candidate gains more than the threshold ({gain} <= {threshold:.1f} nats), but the "
+                f"residual stands at {ratio:.2f}x the measured noise level"))
+        return dict(decision=Decision.NOTHING_MISSING, verdict=(
+            f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats)"))
+    runner = next((s for s in ranked if s is not best and s.effect != best.effect), None)
+    candidate, fit = by_label[best.label]
+    if best.error_after is None:
+        best = dataclasses.replace(best, error_after=run.err(fit["model"], run.heldout))
+    cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)
+    log_bf = best.evidence_gain - runner.evidence_gain if runner is not None else math.inf
+    info = dict(added=best, bayes_factor=_bf(log_bf), runner_up=None if runner is None else runner.label,
+                confirmation=cv)
+    if not cv > 0:
+        return dict(decision=Decision.NO_HELDOUT_GAIN, bayes_factor=info["bayes_factor"],
+                    runner_up=info["runner_up"], confirmation=cv, verdict=(
+                        f"{best.label} gains {best.evidence_gain:.1f} nats but does not predict held-out records "
+                        f"better (cross-validated predictive log likelihood {cv:+.1f} nats); not added"))
+    after = fit["model"]
+    coef_name = best.effect if candidate.effect is None else candidate.effect.coefficient
+    phys = "" if best.physical is None else f", {coef_name} = {best.physical:.4g}"
+    odds = "" if runner is None else f", Bayes factor {_bf_text(log_bf)} over {runner.label}"
+    tail = (f"held-out error {100 * err_held:.3g} % -> {100 * best.error_after:.3g} %; "
+            f"cross-validated predictive log likelihood {cv:+.1f} nats")
+    if candidate.effect is None:
+        closest = ", ".join(f"{s.label} ({s.evidence_gain - best.evidence_gain:+.1f} nats)" for s in named[:2])
+        verdict = (f"added a term not in the catalogue: {best.label} in {candidate.additions[0][0]}' with coefficient "
+                   f"{best.coef:.4g} +- {best.std:.2g}: +{best.evidence_gain:.1f} nats; the closest named effects "
+                   f"explain less: {closest or 'none'}; {tail}")
+        return dict(decision=Decision.ADDED, verdict=verdict, model_after=after, error_after=best.error_after, **info)
+    if runner is not None and log_bf < rule.margin_nats:
+        experiment = separating_experiment(after, by_label[runner.label][1]["model"], run.data, run.measured,
+                                           run.noise_of(fit))
+        where = "" if experiment is None else (
+            f"; {experiment['input']} would separate them (predictions {experiment['difference_noise_std']:.3g} noise "
+            f"std apart, against {experiment['difference_on_training_input']:.3g} on the training input)")
+        verdict = (f"ambiguous between {best.label} and {runner.label}: Bayes factor {_bf_text(log_bf)} (below "
+                   f"{_bf_text(rule.margin_nats)}); the better, {best.label}, is kept{phys}{where}; {tail}")
+        return dict(decision=Decision.AMBIGUOUS, verdict=verdict, model_after=after, error_after=best.error_after,
+                    separating_experiment=experiment, **info)
+    verdict = (f"added {best.label} ({best.description}){phys}: +{best.evidence_gain:.1f} nats{odds}; {tail}")
+    return dict(decision=Decision.ADDED, verdict=verdict, model_after=after, error_after=best.error_after, **info)
+
+
+def _without(model, names, base) -> object:
+    """``model`` without the terms ``names`` (terms of the base structure ``base`` stay)."""
+    eqs = []
+    for eq in model.equations:
+        keep = [k for k, t in enumerate(eq.terms) if t.name not in names or t.name in base.get(eq.lhs, ())]
+        if len(keep) < len(eq.terms):
+            eq = dataclasses.replace(eq, terms=tuple(eq.terms[k] for k in keep),
+                                     covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)])
+        eqs.append(eq)
+    return dataclasses.replace(model, equations=tuple(eqs))
+
+
+def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
+    """An earlier addition reconsidered given the ones made since: its runner-up takes its place when, with
+    everything added later, it explains the records better by ``margin_nats`` (greedy choices are made
+    before the effects that confound them are in the model: a clearance can stand in for a cubic spring
+    while a Coulomb force is missing)."""
+    by_label = {c.label: c for c in run.oe_candidates}
+    base = {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
+    replaced = {s.replaces for s in history if s.replaces is not None}
+    for k, s in enumerate(history):
+        later = any(h.model_after is not None for h in history[k + 1:])
+        r = by_label.get(s.runner_up)
+        if (not later or s.added is None or s.model_after is None or s.replaces is not None or r is None
+                or s.added.label in replaced or r.key in run.added_keys or _present(model, r)):
+            continue
+        try:
+            without = run.scorer(_without(model, set(s.added.terms), base), run.records)
+            (fit,) = without.refit([r])
+        except SimulationError:
+            continue
+        gain = (without.log_evidence + fit["gain"] - scorer.log_evidence) if fit is not None else -math.inf
+        if not gain >= rule.margin_nats:
+            continue
+        score = _score(run, r, fit, without.fitted(), math.nan)
+        verdict = (f"replaced {s.added.label} (added in iteration {s.iteration}) by {r.label}: with the effects "
+                   f"added since, it explains the records better by {gain:.1f} nats (Bayes factor {_bf_text(gain)}); "
+                   f"held-out error -> {100 * score.error_after:.3g} %")
+        return dict(scores=(score,), threshold=rule.margin_nats, null_gains=(), decision=Decision.REPLACED,
+                    verdict=verdict, added=score, model_after=fit["model"], error_after=score.error_after,
+                    bayes_factor=_bf(gain), runner_up=s.added.label, replaces=s.added.label)
+    return None
+
+
+def _bf(log_bf: float) -> float:
+    return math.exp(min(log_bf, 700.0))
+
+
+def _bf_text(log_bf: float) -> str:
+    return f"{math.exp(log_bf):.3g}" if log_bf < 50 else f"e^{log_bf:.0f}"
+
+
+
