@@ -391,6 +391,38 @@ def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path
     assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
 
 
+def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
+    from scipy.signal import butter, sosfiltfilt
+
+    x1, v1, x2, v2, F = (ca.SX.sym(n) for n in ("x1", "v1", "x2", "v2", "F"))
+    rhs = (v1, (F - 3 * v1 - 2e4 * x1 - 0.5 * (v1 - v2) - 1.2e3 * (x1 - x2)) / 1.5, v2,
+           (-0.5 * (v2 - v1) - 1.2e3 * (x2 - x1)) / 0.3)
+    _, _, train, held = multisine_records(OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "two modes"), seed=5,
+                                          train_s=3.0)
+
+    def first_mass(tr):  # the second mass is not measured, not in the model and not among the candidates
+        return Trajectory(tr.t, tr.states[:, :2], tr.inputs, ("x1", "v1"), tr.input_names)
+
+    report = discrepancy(first_mass(train), "x1: v1; v1: F, x1, v1", heldout=first_mass(held),
+                         rule=symsbl.DecisionRule(n_bootstrap=0))
+    assert report.steps[-1].decision == "unexplained" and "follows the input" in report.verdict, report.verdict
+    assert report.steps[-1].residual_ratio > 3
+
+    clean_train, clean_held, _, _ = multisine_records(light_oscillator(lambda x, v: 0 * v), seed=6)
+    sos = butter(4, 100.0, fs=FS_OE, output="sos")
+    rng = np.random.default_rng(0)
+
+    def coloured(tr):  # 1 % band-limited noise: the third-difference noise estimate sees much less
+        e = sosfiltfilt(sos, rng.standard_normal(tr.states.shape), axis=0)
+        return Trajectory(tr.t, tr.states + 0.01 * tr.states.std(axis=0) * e / e.std(axis=0), tr.inputs,
+                          tr.state_names, tr.input_names)
+
+    report = discrepancy(coloured(clean_train), "x: v; v: F, x, v", heldout=coloured(clean_held))
+    (step,) = report.steps
+    assert step.decision == "nothing missing" and step.residual_ratio > 10, step.verdict
+    assert "correlated measurement noise" in step.verdict
+
+
 def test_predictive_log_likelihood_of_the_truth_is_the_gaussian_closed_form():
     from symsbl._discrepancy.confirm import predictive_log_likelihood
     from symsbl._refine.engine import Settings

@@ -9,8 +9,10 @@ catalogue, library terms) is screened, the leaders are refitted, and the best ad
   "ambiguous between A and B" with the odds and the record that would separate them, and the better
   model is kept;
 - **not confirmed** when it clears the threshold but does not predict the held-out records better;
-- otherwise nothing is added: "nothing missing" when the model's residual is at the measured noise
-  level, "unexplained" when it stands above it.
+- otherwise nothing is added: "unexplained" when the model's residual stands above the measured
+  noise level and follows the input (dynamics the search did not find), "nothing missing" when it
+  is at the noise level or does not follow the input (correlated measurement noise, which the
+  third-difference noise estimate cannot see).
 
 A library term is chosen only when it beats every catalogue effect; the verdict then says "not in the
 catalogue" and how far the closest named effects fall behind.
@@ -148,8 +150,8 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
                 scores=tuple(scores), threshold=threshold, null_gains=tuple(null), evidence="output-error",
                 residual_ratio=run.residual_ratio(scorer))
     by_label = {(avail[i].label): (avail[i], refitted[i]) for i in refitted}
-    return DiscrepancyStep(**step, **_choose(run, model, scores, by_label, threshold, rule, step["residual_ratio"],
-                                             err_held))
+    ratio = (step["residual_ratio"], run.input_share(scorer))
+    return DiscrepancyStep(**step, **_choose(run, model, scores, by_label, threshold, rule, ratio, err_held))
 
 
 def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> dict:
@@ -163,12 +165,17 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
             best = named[0]
     if best is None or best.evidence_gain <= threshold:
         gain = "none" if best is None else f"{best.evidence_gain:.1f}"
-        if ratio > UNEXPLAINED_RATIO:
+        level, share = ratio
+        if level > UNEXPLAINED_RATIO and share > 1:
             return dict(decision=Decision.UNEXPLAINED, verdict=(
                 f"unexplained: no candidate gains more than the threshold ({gain} <= {threshold:.1f} nats), but the "
-                f"residual stands at {ratio:.2f}x the measured noise level"))
+                f"residual stands at {level:.2f}x the measured noise level and follows the input ({share:.2g}x the "
+                f"share chance explains)"))
+        coloured = "" if level <= UNEXPLAINED_RATIO else (
+            f"; the residual is {level:.3g}x the white-noise level but does not follow the input: correlated "
+            f"measurement noise")
         return dict(decision=Decision.NOTHING_MISSING, verdict=(
-            f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats)"))
+            f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats){coloured}"))
     runner = next((s for s in ranked if s is not best and s.effect != best.effect), None)
     candidate, fit = by_label[best.label]
     if best.error_after is None:

@@ -49,7 +49,7 @@ from .catalogue import CATALOGUE, Effect
 from .decide import DecisionRule, decide
 from .design import ERROR_MEASURES, Design, heldout_error
 from .inputs import check_record, parse_base, split_record
-from .locate import locate
+from .locate import effective_fraction, locate
 from .results import Decision, DiscrepancyReport
 from .scoring import Scorer
 from .search import oe_step
@@ -58,6 +58,17 @@ __all__ = ["discrepancy", "Workflow", "EVIDENCE"]
 
 #: What the evidence of an effect is computed from.
 EVIDENCE = ("output-error", "equation-error")
+
+
+def _regressors(X: np.ndarray) -> np.ndarray:
+    """A constant and simple functions of the (standardised) simulated states ``X``."""
+    S = (X - X.mean(axis=0)) / np.maximum(X.std(axis=0), 1e-300)
+    cols = [np.ones(X.shape[0])]
+    for j in range(S.shape[1]):
+        s = S[:, j]
+        cols += [s, s**2, s**3, s * np.abs(s), np.sign(s)]
+        cols += [s * S[:, i] for i in range(j)]
+    return np.column_stack(cols)
 
 
 def _pair(base, state_names, displacement, velocity):
@@ -318,6 +329,43 @@ class Workflow:
                 res = res[np.isfinite(res)]
                 if res.size and levels.get(name, 0) > 0:
                     out = max(out, float(np.std(res)) / levels[name])
+        return out
+
+    def input_share(self, scorer: Scorer, segments: int = 16) -> float:
+        """How far the residual follows the experiment, beyond chance (above 1: it does), the largest over records
+        and states of two statistics, each over its critical value at a false-alarm rate of 1e-3:
+
+        - the magnitude-squared coherence between each input and the residual (Welch, ``segments``
+          segments; critical value ``1 - (1e-3 / bins)^(1 / (segments - 1))``): dynamics the model misses,
+          driven by the input;
+        - the R^2 of the residual on simple functions of the simulated states (s, s^2, s^3, s|s|, sign s,
+          products of two states; critical value ``max(0.2, 5 p / N_eff)`` for ``p`` regressors): a missing
+          nonlinearity.
+
+        Measurement noise of any colour, independent of the experiment, stays below 1."""
+        from scipy.signal import coherence
+
+        passes, sol = scorer.engine.passes, scorer.solution
+        passes.use_segments(sol.starts)
+        with np.errstate(all="ignore"):
+            X = passes.simulate(sol.theta, sol.X0)
+            R = passes.records.Y - X[:, list(passes.records.measured)]
+        out = 0.0
+        for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
+            if n < 64 * segments:
+                continue
+            A = _regressors(X[a:a + n])
+            for c in range(R.shape[1]):
+                y = R[a:a + n, c]
+                if not (np.all(np.isfinite(y)) and np.all(np.isfinite(A))) or np.std(y) == 0:
+                    continue
+                fit = np.linalg.lstsq(A, y, rcond=None)[0]
+                r2 = 1.0 - float(np.var(y - A @ fit)) / float(np.var(y))
+                out = max(out, r2 / max(0.2, 5.0 * A.shape[1] / (n * effective_fraction(y))))
+                for j in range(r.inputs.shape[1]):
+                    _, coh = coherence(r.inputs[:, j], y, nperseg=n // segments, noverlap=0)
+                    crit = 1.0 - (1e-3 / coh.size) ** (1.0 / (segments - 1))
+                    out = max(out, float(np.max(coh)) / crit)
         return out
 
     def noise_of(self, fit: dict) -> dict:
