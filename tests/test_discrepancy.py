@@ -264,6 +264,14 @@ def test_discrepancy_argument_errors():
     train = train.slice(0, 8000)
     with pytest.raises(DataError, match=exactly("error: expected one of 'simulation', 'equation', received 'output'")):
         discrepancy(train, BASE, error="output")
+    with pytest.raises(DataError, match=exactly("error: expected 'simulation' with evidence='output-error' (the "
+                                                "output-error search scores terms the equation-error measure cannot "
+                                                "evaluate), received 'equation'; use evidence='equation-error' for a "
+                                                "plant that cannot run open loop")):
+        discrepancy(train, BASE, error="equation", evidence="output-error")
+    with pytest.raises(DataError, match=exactly("evidence: expected one of 'output-error', 'equation-error', "
+                                                "received 'both'")):
+        discrepancy(train, BASE, evidence="both")
     with pytest.raises(DataError, match=exactly('data: expected a Trajectory, received ndarray')):
         discrepancy(train.states, BASE)
     other = Trajectory(held.t, held.states, held.inputs, ("y1", "y2"), ("F",))

@@ -181,6 +181,10 @@ def discrepancy(
     choice("error", error, ERROR_MEASURES, error=DataError)
     evidence = ("output-error" if error == "simulation" else "equation-error") if evidence is None else evidence
     choice("evidence", evidence, EVIDENCE, error=DataError)
+    if evidence == "output-error" and error != "simulation":
+        raise DataError(expected("error", "'simulation' with evidence='output-error' (the output-error search scores "
+                                 "terms the equation-error measure cannot evaluate)", error,
+                                 "use evidence='equation-error' for a plant that cannot run open loop"))
     if not isinstance(rule, DecisionRule):
         raise DataError(expected("rule", "a DecisionRule", type(rule).__name__, raw=True))
     max_iterations = integer("max_iterations", max_iterations, low=1, error=DataError)
