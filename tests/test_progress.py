@@ -243,13 +243,15 @@ def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
     assert re.fullmatch(r"dictionary \(\d+ terms\) and Gram, streamed: 4096/4096 samples in .*", line)
 
 
-def test_the_discrepancy_scan_reports_every_catalogue_fit(terminal):
+@pytest.mark.parametrize("evidence, unit", [("equation-error", "fits"), ("output-error", "stages")])
+def test_the_discrepancy_scan_reports_every_fit_or_stage(terminal, evidence, unit):
     stream = terminal()
     train = simulate(systems.linear(), time_grid(1.0, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
-    discrepancy(train, "x1: x2; x2: F, x1, x2", rule=symsbl.DecisionRule(n_bootstrap=1), max_iterations=1)
+    discrepancy(train, "x1: x2; x2: F, x1, x2", rule=symsbl.DecisionRule(n_bootstrap=1), max_iterations=1,
+                evidence=evidence)
     scans = [line for line in finished(stream.getvalue()) if line.startswith("discrepancy iteration 1")]
     assert len(scans) == 1
-    done, total = map(int, re.search(r": (\d+)/(\d+) fits", scans[0]).groups())
+    done, total = map(int, re.search(rf": (\d+)/(\d+) {unit}", scans[0]).groups())
     assert done == total > 0
 
 
