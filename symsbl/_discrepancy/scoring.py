@@ -18,6 +18,7 @@ that includes the candidate (:func:`symsbl._refine.engine.residual_fraction`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -90,6 +91,21 @@ class Scorer:
         self.solution = self.engine.fit(self.engine.base, theta0, alpha)
         self.fraction = residual_fraction(self.engine, self.solution)
 
+    @functools.cached_property
+    def simulated(self) -> np.ndarray:
+        """The fit's simulated states on every sample ``(n_total, nx)``, each segment from its fitted start."""
+        passes, sol = self.engine.passes, self.solution
+        passes.use_segments(sol.starts)
+        with np.errstate(all="ignore"):
+            return passes.simulate(sol.theta, sol.X0)
+
+    @property
+    def residual(self) -> np.ndarray:
+        """Measured minus simulated, ``(n_total, n_measured)``, in the layout of ``engine.passes.records``."""
+        records = self.engine.passes.records
+        with np.errstate(all="ignore"):
+            return records.Y - self.simulated[:, list(records.measured)]
+
     @property
     def log_evidence(self) -> float:
         return float(self.solution.posterior.log_evidence)
@@ -112,11 +128,9 @@ class Scorer:
         passes.use_weights(sol.w)
         starts = passes.segment_starts(min(int(sol.length), int(passes.records.lengths.max())))
         passes.use_segments(starts)
-        main.passes.use_segments(sol.starts)
         origin = np.concatenate([main.passes.records.starts[k] + np.arange(a, b) for k, a, b in plan])
         with np.errstate(all="ignore"):
-            X0 = main.passes.simulate(sol.theta, sol.X0)[origin[starts]]
-            H, g, _, _ = passes.sensitivities(theta, X0)
+            H, g, _, _ = passes.sensitivities(theta, self.simulated[origin[starts]])
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
             return np.zeros(len(candidates))
         S, gr = _reduced(H, g, theta.size)

@@ -290,13 +290,12 @@ class Workflow:
         record as evidence, the pairs, the candidates, kinematic base equations ``x' = v`` held exact."""
         data = self.data
         symbols = {s.name(): s for s in start.states}
-        found = tuple(pairs) or tuple((x, v) for x, v in ((p.x, p.v) for p in pairs_of(
-            {eq.lhs: tuple(t.expr for t in eq.terms) for eq in start.equations}, symbols)) if x in symbols)
+        base_exprs = {eq.lhs: tuple(t.expr for t in eq.terms) for eq in start.equations}
+        found = tuple(pairs) or tuple((p.x, p.v) for p in pairs_of(base_exprs, symbols) if p.x in symbols)
         velocity_of = dict(found)
         equations = tuple(Equation.kinematic(eq.lhs, symbols[velocity_of[eq.lhs]])
                           if eq.names == [velocity_of.get(eq.lhs)] else eq for eq in start.equations)
         self.structure_model = dataclasses.replace(start, equations=equations, kinematics=found)
-        base_exprs = {eq.lhs: tuple(t.expr for t in eq.terms) for eq in start.equations}
         self.pairs = pairs_of(base_exprs, symbols, found)
         if not self.pairs:
             raise DataError(expected("kinematics", "a position-velocity pair to search (a base equation 'x: v' or "
@@ -321,10 +320,7 @@ class Workflow:
 
     def residual_ratio(self, scorer: Scorer) -> float:
         """The largest residual standard deviation over the measured noise level, per record and state."""
-        passes, sol = scorer.engine.passes, scorer.solution
-        passes.use_segments(sol.starts)
-        with np.errstate(all="ignore"):
-            R = passes.records.Y - passes.simulate(sol.theta, sol.X0)[:, list(passes.records.measured)]
+        passes, R = scorer.engine.passes, scorer.residual
         out = 0.0
         for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
             levels = noise_levels(r)
@@ -349,11 +345,7 @@ class Workflow:
         Measurement noise of any colour, independent of the experiment, stays below 1."""
         from scipy.signal import coherence
 
-        passes, sol = scorer.engine.passes, scorer.solution
-        passes.use_segments(sol.starts)
-        with np.errstate(all="ignore"):
-            X = passes.simulate(sol.theta, sol.X0)
-            R = passes.records.Y - X[:, list(passes.records.measured)]
+        passes, X, R = scorer.engine.passes, scorer.simulated, scorer.residual
         out = 0.0
         for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
             if n < 64 * segments:
