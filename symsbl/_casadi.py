@@ -5,6 +5,7 @@
 - :func:`jit_wrap`: compile a (mapped) Function into one C loop with gcc through CasADi's
   ``shell`` JIT when a compiler exists, with a fallback to CasADi's virtual machine, cached
   per process;
+- :func:`interrupts_kept`: a Ctrl-C that a CasADi solver notices is raised, not turned into a solver failure;
 - :func:`run_chunks`: call a Function of fixed chunk size over row-major numpy arrays through
   ``Function.buffer()``, padding the last partial chunk.
 
@@ -15,12 +16,17 @@ A ``(k, chunk)`` CasADi matrix is column-major, i.e. the same memory as a C-orde
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
+import io
 import itertools
 import os
 import shutil
+import signal
 import subprocess
+import sys
 import tempfile
+import threading
 from collections import OrderedDict
 
 import casadi as ca
@@ -30,7 +36,7 @@ from ._errors import SymsblError, expected
 
 __all__ = [
     "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "compiler", "jit_wrap", "jit_lookup",
-    "run_chunks",
+    "interrupts_kept", "run_chunks",
 ]
 
 #: CasADi operations whose value or slope jumps: an expression using any of them is not smooth.
@@ -181,6 +187,44 @@ def _compile(fn: ca.Function) -> ca.Function:
     subprocess.run([compiler(), *_JIT_FLAGS, "-shared", "-fPIC", source, "-o", library], check=True,
                    capture_output=True)
     return ca.external(fn.name(), library)
+
+
+@contextlib.contextmanager
+def interrupts_kept():
+    """Raise ``KeyboardInterrupt`` at the end of the block if Ctrl-C was pressed inside it.
+
+    CasADi's SUNDIALS callbacks poll Python for interrupts; one that arrives during a CVODES run is
+    consumed there and comes back as a solver failure (``CV_RHSFUNC_FAIL``), which would read as a
+    diverging model. Inside the block SIGINT is recorded before it raises, so the interrupt is raised
+    again when the block ends, whatever the solver made of it, and CasADi's report of it on standard
+    error is dropped (anything else written there is passed on at the end). Python's own handler is
+    left in place when a program installed another one or the block runs outside the main thread.
+    """
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+    seen = []
+
+    def record(signum, frame):
+        seen.append(signum)
+        raise KeyboardInterrupt
+
+    held = io.StringIO()  # CasADi reports the interrupt on sys.stderr ("rhs failed: KeyboardInterrupt")
+    signal.signal(signal.SIGINT, record)
+    try:
+        with contextlib.redirect_stderr(held):
+            yield
+    except Exception:  # the solver's failure, or anything else: the interrupt comes first
+        if seen:
+            raise KeyboardInterrupt from None
+        raise
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        if not seen and held.getvalue():
+            sys.stderr.write(held.getvalue())
+    if seen:
+        raise KeyboardInterrupt
 
 
 def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: list[np.ndarray]) -> None:

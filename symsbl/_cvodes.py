@@ -11,6 +11,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from ._casadi import interrupts_kept
 from ._errors import SimulationError, expected
 from ._progress import Progress
 
@@ -57,7 +58,8 @@ def run_cvodes(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit,
             buf.set_arg(i_p, memoryview(shift))
             buf.set_res(0, memoryview(out[a + 1:b + 1]))
             try:
-                trigger()
+                with interrupts_kept():  # a Ctrl-C inside CVODES comes back as CV_RHSFUNC_FAIL otherwise
+                    trigger()
             except RuntimeError as err:
                 reason = str(err).strip().splitlines()[-1].split(": ", 1)[-1]
                 done = np.flatnonzero(np.all(np.isfinite(out), axis=1))

@@ -1,6 +1,10 @@
 """Simulation against exact solutions (matrix exponentials), convergence orders and cross-method agreement."""
 
+import os
 import shutil
+import signal
+import threading
+import time
 
 import casadi as ca
 import numpy as np
@@ -120,6 +124,26 @@ def test_coulomb_stalls_cvodes_which_reports_it():
     t = time_grid(0.1, 4096)
     with pytest.raises(SimulationError, match=exactly('simulation of \'coulomb\' with cvodes: expected a solution that stays finite, received divergence at t = 0 s (cvodes failed: CVode returned "CV_TOO_MUCH_WORK". Consult CVODES documentation.); fewer than 2 samples were computed, so there is nothing to return; the right-hand side is discontinuous: use method=\'rk4\' (or \'auto\')')):
         simulate(systems.coulomb(), t, inputs=Sine(), method="cvodes")
+
+
+def test_ctrl_c_inside_cvodes_is_an_interrupt_not_a_divergence(capsys):
+    """CVODES polls for Ctrl-C in its callbacks and reports it as CV_RHSFUNC_FAIL: it must stay an interrupt."""
+    t = time_grid(40.0, FS)  # 20 segments of CVODES
+    t0 = time.perf_counter()
+    simulate(systems.duffing(), t, inputs=Sine(), method="cvodes")
+    whole = time.perf_counter() - t0
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    timer = threading.Timer(whole / 2, lambda: os.kill(os.getpid(), signal.SIGINT))  # mid-run: inside CVODES
+    t0 = time.perf_counter()
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            simulate(systems.duffing(), t, inputs=Sine(), method="cvodes")
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, previous)
+    assert time.perf_counter() - t0 < whole
+    assert capsys.readouterr().err == ""  # CasADi's "rhs failed: KeyboardInterrupt" is not shown
 
 
 def test_duffing_rk4_and_cvodes_agree():
