@@ -159,10 +159,6 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
     ranked = [s for s in scores if s.admissible and s.label in by_label and np.isfinite(s.evidence_gain)]
     named = [s for s in ranked if s.family != "not in the catalogue"]
     best = ranked[0] if ranked else None
-    if best is not None and best.family == "not in the catalogue" and named:
-        # a library term must beat every named effect by the naming margin, or the named effect is preferred
-        if best.evidence_gain - named[0].evidence_gain < rule.margin_nats:
-            best = named[0]
     if best is None or best.evidence_gain <= threshold:
         gain = "none" if best is None else f"{best.evidence_gain:.1f}"
         level, share = ratio
@@ -177,6 +173,8 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
         return dict(decision=Decision.NOTHING_MISSING, verdict=(
             f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats){coloured}"))
     runner = next((s for s in ranked if s is not best and s.effect != best.effect), None)
+    if best.family == "not in the catalogue" and named:
+        runner = named[0]  # a library term is named only when it beats every named effect by the naming margin
     candidate, fit = by_label[best.label]
     if best.error_after is None:
         best = dataclasses.replace(best, error_after=run.err(fit["model"], run.heldout))
@@ -195,7 +193,7 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
     odds = "" if runner is None else f", Bayes factor {_bf_text(log_bf)} over {runner.label}"
     tail = (f"held-out error {100 * err_held:.3g} % -> {100 * best.error_after:.3g} %; "
             f"cross-validated predictive log likelihood {cv:+.1f} nats")
-    if candidate.effect is None:
+    if candidate.effect is None and (runner is None or log_bf >= rule.margin_nats):
         closest = ", ".join(f"{s.label} ({s.evidence_gain - best.evidence_gain:+.1f} nats)" for s in named[:2])
         verdict = (f"added a term not in the catalogue: {best.label} in {candidate.additions[0][0]}' with coefficient "
                    f"{best.coef:.4g} +- {best.std:.2g}: +{best.evidence_gain:.1f} nats; the closest named effects "
@@ -207,8 +205,9 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
         where = "" if experiment is None else (
             f"; {experiment['input']} would separate them (predictions {experiment['difference_noise_std']:.3g} noise "
             f"std apart, against {experiment['difference_on_training_input']:.3g} on the training input)")
-        verdict = (f"ambiguous between {best.label} and {runner.label}: Bayes factor {_bf_text(log_bf)} (below "
-                   f"{_bf_text(rule.margin_nats)}); the better, {best.label}, is kept{phys}{where}; {tail}")
+        outside = " (not in the catalogue)" if candidate.effect is None else ""
+        verdict = (f"ambiguous between {best.label}{outside} and {runner.label}: Bayes factor {_bf_text(log_bf)} "
+                   f"(below {_bf_text(rule.margin_nats)}); the better, {best.label}, is kept{phys}{where}; {tail}")
         return dict(decision=Decision.AMBIGUOUS, verdict=verdict, model_after=after, error_after=best.error_after,
                     separating_experiment=experiment, **info)
     verdict = (f"added {best.label} ({best.description}){phys}: +{best.evidence_gain:.1f} nats{odds}; {tail}")

@@ -229,10 +229,11 @@ def discrepancy(
 def _added_name(step) -> str:
     """How an added effect is named in the verdict."""
     label = step.added.label
-    if step.added.family == "not in the catalogue":
-        return f"{label} (not in the catalogue)"
+    outside = "not in the catalogue; " if step.added.family == "not in the catalogue" else ""
     if step.decision is Decision.AMBIGUOUS:
-        return f"{label} (ambiguous with {step.runner_up}, Bayes factor {step.bayes_factor:.3g})"
+        return f"{label} ({outside}ambiguous with {step.runner_up}, Bayes factor {step.bayes_factor:.3g})"
+    if outside:
+        return f"{label} (not in the catalogue)"
     if step.decision is Decision.REPLACED:
         return f"{label} (in place of {step.replaces})"
     return label
