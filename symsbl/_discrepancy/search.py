@@ -242,6 +242,11 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
             continue
         try:
             without = run.scorer(_without(model, set(s.added.terms), base), run.records)
+        except SimulationError:
+            continue
+        if not _comparable(without.solution, scorer.solution):
+            continue  # segments cut short (a model that runs away): its evidence is of another, easier problem
+        try:
             (fit,) = without.refit([r])
         except SimulationError:
             continue
@@ -249,6 +254,8 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
         if not gain >= rule.margin_nats:
             continue
         score = _score(run, r, fit, without.fitted(), math.nan)
+        if score.error_after is not None and not np.isfinite(score.error_after):
+            continue  # it runs away on the held-out record
         verdict = (f"replaced {s.added.label} (added in iteration {s.iteration}) by {r.label}: with the effects "
                    f"added since, it explains the records better by {gain:.1f} nats (Bayes factor {_bf_text(gain)}); "
                    f"held-out error -> {100 * score.error_after:.3g} %")
@@ -256,6 +263,13 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
                     verdict=verdict, added=score, model_after=fit["model"], error_after=score.error_after,
                     bayes_factor=_bf(gain), runner_up=s.added.label, replaces=s.added.label)
     return None
+
+
+def _comparable(a, b) -> bool:
+    """Whether two output-error fits of the same records have log evidences that can be compared: the same
+    shooting segments (a fit whose segments stopped growing, because its model amplifies state errors past
+    ``PHI_STOP``, has the easier likelihood of shorter simulations)."""
+    return a.length == b.length and np.array_equal(a.starts, b.starts)
 
 
 def _bf(log_bf: float) -> float:
