@@ -27,7 +27,7 @@ level), and a record at 400 Hz (20 samples per period of the resonance).
 
 Run: ``python bench/bench_discrepancy.py [--part detection|cases|beyond|false-alarms] [--size S] [--seeds N]
 [--noise 0.01,...] [--records 1,2] [--evidence output-error,equation-error] [--effects coulomb,...] [--null-seeds N]
-[--first-seed S]``.
+[--first-seed S] [--null-cases coloured,...]``.
 """
 
 import argparse
@@ -180,6 +180,8 @@ def false_alarms(args):
     print("| nothing-missing case | noise | false alarms | time per run |")
     print("|---|---|---|---|")
     for case, (make, base, kind) in NULL.items():
+        if args.null_cases and not any(word in case for word in args.null_cases):
+            continue
         train0, held0 = make()
         for noise in args.noise:
             alarms, t0 = [], time.perf_counter()
@@ -259,6 +261,7 @@ def main():
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--null-seeds", type=int, default=200)
     p.add_argument("--first-seed", type=int, default=0, help="first seed of --part false-alarms (to extend a run)")
+    p.add_argument("--null-cases", default="", help="comma-separated words: only the false-alarm cases naming one")
     p.add_argument("--noise", default="0.004,0.01,0.02")
     p.add_argument("--records", default="1,2")
     p.add_argument("--evidence", default="equation-error,output-error")
@@ -268,6 +271,7 @@ def main():
     args.records = [int(s) for s in args.records.split(",")]
     args.evidence = args.evidence.split(",")
     args.effects = args.effects.split(",")
+    args.null_cases = [w for w in args.null_cases.split(",") if w]
     print(f"peak displacement {X:.4g} m, peak velocity {V:.4g} m/s, force amplitude {FA:.4g} N")
     if args.part in ("detection", "all"):
         detection(args)

@@ -337,8 +337,9 @@ class Workflow:
         and states of two statistics, each over its critical value at a false-alarm rate of 1e-3:
 
         - the magnitude-squared coherence between each input and the residual (Welch, ``segments``
-          segments; critical value ``1 - (1e-3 / bins)^(1 / (segments - 1))``): dynamics the model misses,
-          driven by the input;
+          segments; critical value ``1 - (1e-3 / (bins tests))^(1 / (segments - 1))``, Bonferroni over the
+          frequency bins and the tests, one per record, state and input): dynamics the model misses, driven
+          by the input;
         - the R^2 of the residual on simple functions of the simulated states (s, s^2, s^3, s|s|, sign s,
           products of two states; critical value ``max(0.2, 5 p / N_eff)`` for ``p`` regressors): a missing
           nonlinearity.
@@ -347,6 +348,8 @@ class Workflow:
         from scipy.signal import coherence
 
         passes, X, R = scorer.engine.passes, scorer.simulated, scorer.residual
+        tests = R.shape[1] * sum(r.inputs.shape[1] for r, n in zip(scorer.records, passes.records.lengths)
+                                 if n >= 64 * segments)
         out = 0.0
         for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
             if n < 64 * segments:
@@ -361,7 +364,7 @@ class Workflow:
                 out = max(out, r2 / max(0.2, 5.0 * A.shape[1] / (n * effective_fraction(y))))
                 for j in range(r.inputs.shape[1]):
                     _, coh = coherence(r.inputs[:, j], y, nperseg=n // segments, noverlap=0)
-                    crit = 1.0 - (1e-3 / coh.size) ** (1.0 / (segments - 1))
+                    crit = 1.0 - (1e-3 / (coh.size * tests)) ** (1.0 / (segments - 1))
                     out = max(out, float(np.max(coh)) / crit)
         return out
 
