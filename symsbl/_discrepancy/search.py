@@ -256,12 +256,17 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
         score = _score(run, r, fit, without.fitted(), math.nan)
         if score.error_after is not None and not np.isfinite(score.error_after):
             continue  # it runs away on the held-out record
+        # confirmed like an addition: it must predict the halves it was not fitted on better
+        cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)
+        if not cv > 0:
+            continue
         verdict = (f"replaced {s.added.label} (added in iteration {s.iteration}) by {r.label}: with the effects "
                    f"added since, it explains the records better by {gain:.1f} nats (Bayes factor {_bf_text(gain)}); "
-                   f"held-out error -> {100 * score.error_after:.3g} %")
+                   f"held-out error -> {100 * score.error_after:.3g} %; cross-validated predictive log likelihood "
+                   f"{cv:+.1f} nats")
         return dict(scores=(score,), threshold=rule.margin_nats, null_gains=(), decision=Decision.REPLACED,
                     verdict=verdict, added=score, model_after=fit["model"], error_after=score.error_after,
-                    bayes_factor=_bf(gain), runner_up=s.added.label, replaces=s.added.label)
+                    bayes_factor=_bf(gain), runner_up=s.added.label, replaces=s.added.label, confirmation=cv)
     return None
 
 
