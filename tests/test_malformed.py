@@ -419,12 +419,9 @@ def test_python_api_refuses_what_it_cannot_do():
 
 @pytest.mark.slow
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-u", "-m", "symsbl", "demo", "--quick"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "symsbl", "demo", "--quick"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    # interrupt once the demo is running (its header is printed after the imports): a SIGINT sent during the
-    # imports of a loaded machine can land in a third-party module that swallows it
-    assert proc.stdout.readline().startswith("symsbl demo:")
-    time.sleep(1.0)
+    time.sleep(3.0)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130
