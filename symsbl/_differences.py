@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from ._differentiator import Differentiator, Stencil, check_samples as _check
 from ._errors import ParameterError, expected
@@ -140,4 +139,6 @@ class SavitzkyGolay(_Pointwise):
             raise ParameterError(expected("SavitzkyGolay.window", f"an odd number greater than polyorder={self.polyorder}",
                                           self.window))
         X, h = _check(t, X, self.window)
+        from scipy.signal import savgol_filter  # scipy.signal costs ~1 s to import: only when used
+
         return savgol_filter(X, self.window, self.polyorder, deriv=1, delta=h, axis=0, mode="interp")

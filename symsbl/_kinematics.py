@@ -13,7 +13,6 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from ._errors import DataError, expected
 from ._trajectory import Trajectory
@@ -89,6 +88,8 @@ def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     half = min(half, (len(x) - 1) // 2)
     if half < 3:
         return np.gradient(x, h)
+    from scipy.signal import savgol_filter  # scipy.signal costs ~1 s to import: only when used
+
     return savgol_filter(x, 2 * half + 1, 5, deriv=1, delta=h, mode="interp")
 
 

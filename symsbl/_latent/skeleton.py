@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares, minimize
 
 from .periodic import Spectra
 
@@ -65,6 +64,8 @@ def fit_linear(spectra: Spectra) -> Skeleton:
     """Stage 1: ``(m, c, k)`` by frequency-domain output error on the excited bins of the average; for a
     transient record (no periodic steady state, so no exact frequency response), by least squares of
     ``u = m y'' + c y' + k y`` on its band-limited samples away from the ends."""
+    from scipy.optimize import least_squares  # scipy.optimize costs ~0.2 s to import: only when used
+
     if not spectra.periodic:
         return _fit_linear_record(spectra)
     exc = spectra.excited
@@ -118,6 +119,8 @@ def split(criterion, linear: Skeleton) -> Skeleton:
     of 0.27 near the upper bound against 0.003 at the truth), so a 72-point grid over ``(c, k)``
     picks three starts for a bounded Nelder-Mead; the best end point is kept.
     """
+    from scipy.optimize import minimize  # scipy.optimize costs ~0.2 s to import: only when used
+
     s = np.abs(linear.values)
 
     def objective(q):
