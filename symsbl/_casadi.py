@@ -22,17 +22,16 @@ import io
 import itertools
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import threading
 from collections import OrderedDict
 
 import casadi as ca
 import numpy as np
 
 from ._errors import SymsblError, expected
+from ._interrupt import sigint_recorded
 
 __all__ = [
     "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "compiler", "jit_wrap", "jit_lookup",
@@ -195,36 +194,20 @@ def interrupts_kept():
 
     CasADi's SUNDIALS callbacks poll Python for interrupts; one that arrives during a CVODES run is
     consumed there and comes back as a solver failure (``CV_RHSFUNC_FAIL``), which would read as a
-    diverging model. Inside the block SIGINT is recorded before it raises, so the interrupt is raised
-    again when the block ends, whatever the solver made of it, and CasADi's report of it on standard
-    error is dropped (anything else written there is passed on at the end). Python's own handler is
-    left in place when a program installed another one or the block runs outside the main thread.
+    diverging model. The interrupt is raised again when the block ends, whatever the solver made of it
+    (:func:`symsbl._interrupt.sigint_recorded`), and CasADi's report of it on standard error is dropped
+    (anything else written there is passed on at the end).
     """
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
-        yield
-        return
-    seen = []
-
-    def record(signum, frame):
-        seen.append(signum)
-        raise KeyboardInterrupt
-
     held = io.StringIO()  # CasADi reports the interrupt on sys.stderr ("rhs failed: KeyboardInterrupt")
-    signal.signal(signal.SIGINT, record)
-    try:
-        with contextlib.redirect_stderr(held):
-            yield
-    except Exception:  # the solver's failure, or anything else: the interrupt comes first
-        if seen:
-            raise KeyboardInterrupt from None
-        raise
-    finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        if not seen and held.getvalue():
-            sys.stderr.write(held.getvalue())
-    if seen:
-        raise KeyboardInterrupt
+    with sigint_recorded() as pressed:
+        try:
+            with contextlib.redirect_stderr(held):
+                yield
+        finally:
+            if pressed():
+                raise KeyboardInterrupt from None  # noqa: B012 - the interrupt comes first, whatever was raised
+            if held.getvalue():
+                sys.stderr.write(held.getvalue())
 
 
 def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: list[np.ndarray]) -> None:

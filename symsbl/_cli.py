@@ -10,28 +10,16 @@ input, and are written through a temporary file renamed into place.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
-import os
 import runpy
 import sys
-import warnings
 from pathlib import Path
 
-from ._errors import DataError, LibraryError, MissingExtraError, SymsblError, expected
-from ._progress import progress_enabled
+from ._errors import DataError, LibraryError, SymsblError, expected
+from ._outcome import EXIT_CODES, fail as _fail, run_command
 from ._refine.problem import INTERPOLATIONS
 
 __all__ = ["main", "build_parser", "EXIT_CODES"]
-
-#: Exit codes of the ``symsbl`` command.
-EXIT_CODES = {
-    0: "success",
-    1: "the model diverged in simulation, or no model was found",
-    2: "bad input: arguments, files, data or model (one line on standard error says which)",
-    3: "internal error (a bug; SYMSBL_TRACEBACK=1 prints the traceback)",
-    130: "interrupted (Ctrl-C)",
-}
 
 #: Image formats ``--plot`` accepts (those matplotlib's Agg backend writes).
 PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
@@ -352,19 +340,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _fail(command: str, message: str, code: int) -> int:
-    with contextlib.suppress(OSError, ValueError):
-        print(f"symsbl {command}: error: {message}", file=sys.stderr)
-    return code
-
-
-def _warning_line(command: str):
-    """Warnings as one line on standard error, like errors: ``symsbl <command>: warning: <message>``."""
-    def show(message, category, filename, lineno, file=None, line=None):
-        print(f"symsbl {command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
-    return show
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``symsbl`` console script; returns the exit code (see :data:`EXIT_CODES`)."""
     parser = build_parser()
@@ -374,21 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     except KeyboardInterrupt:
         return _fail("", "interrupted", 130)
-    try:
-        with progress_enabled(False) if args.quiet else contextlib.nullcontext(), warnings.catch_warnings():
-            warnings.showwarning = _warning_line(args.command)
-            return args.func(args)
-    except (SymsblError, MissingExtraError) as exc:
-        return _fail(args.command, " ".join(str(exc).split()), 2)
-    except KeyboardInterrupt:
-        return _fail(args.command, "interrupted", 130)
-    except MemoryError:
-        return _fail(args.command, "out of memory: use a shorter record, fewer candidate terms or a lower --degree", 2)
-    except Exception as exc:  # noqa: BLE001 - a bug: one line unless asked for the traceback
-        if os.environ.get("SYMSBL_TRACEBACK"):
-            raise
-        return _fail(args.command, f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
-                     "rerun with SYMSBL_TRACEBACK=1 and report it", 3)
+    return run_command(args.command, lambda: args.func(args), quiet=args.quiet)
 
 
 if __name__ == "__main__":  # pragma: no cover
