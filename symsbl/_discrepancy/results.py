@@ -10,7 +10,12 @@ import numpy as np
 from .._format import format_uncertain
 from .._model import IdentifiedModel
 
-__all__ = ["Decision", "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport"]
+__all__ = [
+    "Decision", "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport", "OUTSIDE_CATALOGUE",
+]
+
+#: The ``family`` of an :class:`EffectScore` for a library term that no catalogue effect names.
+OUTSIDE_CATALOGUE = "not in the catalogue"
 
 
 class Decision(str, enum.Enum):

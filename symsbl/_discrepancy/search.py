@@ -29,7 +29,7 @@ from .._errors import SimulationError
 from .._progress import Progress
 from .candidates import reshaped, term_name
 from .confirm import cross_validated_gain, separating_experiment
-from .results import Decision, DiscrepancyStep, EffectScore
+from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyStep, EffectScore
 from .scoring import REFITS
 
 __all__ = ["oe_step", "UNEXPLAINED_RATIO"]
@@ -64,7 +64,7 @@ def _input_coefficient(model, state: str, input_names) -> float | None:
 def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
     """The :class:`EffectScore` of candidate ``c`` (``fit``: its refit, None when only screened)."""
     e = c.effect
-    family = e.family if e is not None else "not in the catalogue"
+    family = e.family if e is not None else OUTSIDE_CATALOGUE
     description = e.description if e is not None else f"the library term {c.label}, outside the catalogue"
     first = c.additions[0][0]
     ref = _input_coefficient(model, first, run.input_names)
@@ -157,7 +157,7 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
 def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> dict:
     """The decision of one iteration, its verdict and, when something is added, the model after."""
     ranked = [s for s in scores if s.admissible and s.label in by_label and np.isfinite(s.evidence_gain)]
-    named = [s for s in ranked if s.family != "not in the catalogue"]
+    named = [s for s in ranked if s.family != OUTSIDE_CATALOGUE]
     best = ranked[0] if ranked else None
     if best is None or best.evidence_gain <= threshold:
         gain = "none" if best is None else f"{best.evidence_gain:.1f}"
@@ -172,10 +172,10 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
             f"measurement noise")
         return dict(decision=Decision.NOTHING_MISSING, verdict=(
             f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats){coloured}"))
-    runner = next((s for s in ranked if s is not best and s.effect != best.effect), None)
-    if best.family == "not in the catalogue" and named:
-        runner = named[0]  # a library term is named only when it beats every named effect by the naming margin
     candidate, fit = by_label[best.label]
+    outside = candidate.effect is None  # a library term: named only when it beats every named effect by the margin
+    runner = named[0] if outside and named else next(
+        (s for s in ranked if s is not best and s.effect != best.effect), None)
     if best.error_after is None:
         best = dataclasses.replace(best, error_after=run.err(fit["model"], run.heldout))
     cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)
@@ -188,12 +188,12 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
                         f"{best.label} gains {best.evidence_gain:.1f} nats but does not predict held-out records "
                         f"better (cross-validated predictive log likelihood {cv:+.1f} nats); not added"))
     after = fit["model"]
-    coef_name = best.effect if candidate.effect is None else candidate.effect.coefficient
+    coef_name = best.effect if outside else candidate.effect.coefficient
     phys = "" if best.physical is None else f", {coef_name} = {best.physical:.4g}"
     odds = "" if runner is None else f", Bayes factor {_bf_text(log_bf)} over {runner.label}"
     tail = (f"held-out error {100 * err_held:.3g} % -> {100 * best.error_after:.3g} %; "
             f"cross-validated predictive log likelihood {cv:+.1f} nats")
-    if candidate.effect is None and (runner is None or log_bf >= rule.margin_nats):
+    if outside and (runner is None or log_bf >= rule.margin_nats):
         closest = ", ".join(f"{s.label} ({s.evidence_gain - best.evidence_gain:+.1f} nats)" for s in named[:2])
         verdict = (f"added a term not in the catalogue: {best.label} in {candidate.additions[0][0]}' with coefficient "
                    f"{best.coef:.4g} +- {best.std:.2g}: +{best.evidence_gain:.1f} nats; the closest named effects "
@@ -205,9 +205,9 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
         where = "" if experiment is None else (
             f"; {experiment['input']} would separate them (predictions {experiment['difference_noise_std']:.3g} noise "
             f"std apart, against {experiment['difference_on_training_input']:.3g} on the training input)")
-        outside = " (not in the catalogue)" if candidate.effect is None else ""
-        verdict = (f"ambiguous between {best.label}{outside} and {runner.label}: Bayes factor {_bf_text(log_bf)} "
-                   f"(below {_bf_text(rule.margin_nats)}); the better, {best.label}, is kept{phys}{where}; {tail}")
+        verdict = (f"ambiguous between {best.label}{f' ({OUTSIDE_CATALOGUE})' if outside else ''} and {runner.label}: "
+                   f"Bayes factor {_bf_text(log_bf)} (below {_bf_text(rule.margin_nats)}); the better, {best.label}, "
+                   f"is kept{phys}{where}; {tail}")
         return dict(decision=Decision.AMBIGUOUS, verdict=verdict, model_after=after, error_after=best.error_after,
                     separating_experiment=experiment, **info)
     verdict = (f"added {best.label} ({best.description}){phys}: +{best.evidence_gain:.1f} nats{odds}; {tail}")

@@ -50,7 +50,7 @@ from .decide import DecisionRule, decide
 from .design import ERROR_MEASURES, Design, heldout_error
 from .inputs import check_record, parse_base, split_record
 from .locate import effective_fraction, locate
-from .results import Decision, DiscrepancyReport
+from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyReport
 from .scoring import Scorer
 from .search import oe_step
 
@@ -229,11 +229,12 @@ def discrepancy(
 def _added_name(step) -> str:
     """How an added effect is named in the verdict."""
     label = step.added.label
-    outside = "not in the catalogue; " if step.added.family == "not in the catalogue" else ""
+    outside = step.added.family == OUTSIDE_CATALOGUE
     if step.decision is Decision.AMBIGUOUS:
-        return f"{label} ({outside}ambiguous with {step.runner_up}, Bayes factor {step.bayes_factor:.3g})"
+        return (f"{label} ({OUTSIDE_CATALOGUE + '; ' if outside else ''}ambiguous with {step.runner_up}, "
+                f"Bayes factor {step.bayes_factor:.3g})")
     if outside:
-        return f"{label} (not in the catalogue)"
+        return f"{label} ({OUTSIDE_CATALOGUE})"
     if step.decision is Decision.REPLACED:
         return f"{label} (in place of {step.replaces})"
     return label
