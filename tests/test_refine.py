@@ -398,7 +398,9 @@ def test_a_refined_model_keeps_the_json_contract(tmp_path):
     assert np.allclose(back.covariance(), model.covariance(), rtol=1e-12, atol=0)
     a = symsbl.validate_model(model, record.slice(0, 400))
     b = symsbl.validate_model(back, record.slice(0, 400))
-    assert a.nrmse == pytest.approx(b.nrmse, rel=1e-9)
+    # the same model; the two re-simulations differed by 1.1e-9 relative once under two test workers (equal in
+    # one process): last-bit differences in evaluation, amplified by the fitted initial state
+    assert a.nrmse == pytest.approx(b.nrmse, rel=1e-7)
 
 
 def test_refine_errors_name_the_argument():
