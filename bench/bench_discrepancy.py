@@ -25,9 +25,15 @@ noise, a Duffing oscillator whose base already holds its cubic term, band-limite
 measurement noise (white noise through a 4th-order Butterworth low-pass at 100 Hz, scaled to the
 level), and a record at 400 Hz (20 samples per period of the resonance).
 
-Run: ``python bench/bench_discrepancy.py [--part detection|cases|beyond|false-alarms] [--size S] [--seeds N]
+**Information.** What the records can tell at all: for each effect and size, every rival (linear, or linear plus
+another catalogue effect, a clearance with its gap free) fitted by Gauss-Newton to the noise-free records (RK4, two
+substeps per sample, the input linear between samples); delta^2 / 2 = min sum((y_true - y_rival)^2 / sigma^2) / 2 is
+the mean log Bayes factor of the truth over the rival, so Phi((delta^2/2 - 3) / delta) bounds the chance that one
+seed names the effect with a 3-nat margin.
+
+Run: ``python bench/bench_discrepancy.py [--part detection|cases|beyond|false-alarms|information] [--size S] [--seeds N]
 [--noise 0.01,...] [--records 1,2] [--evidence output-error,equation-error] [--effects coulomb,...] [--null-seeds N]
-[--first-seed S] [--null-cases coloured,...]``.
+[--first-seed S] [--null-cases coloured,...] [--sizes 0.005,...]``.
 """
 
 import argparse
@@ -254,9 +260,118 @@ def beyond(args):
                       f"{100 * max(truth.nrmse.values()):.3f} % | {dt:.0f} s |", flush=True)
 
 
+#: effect -> its basis phi(x, v, gap) in the information bound (sign smoothed as tanh(v / (1e-4 V)))
+BASIS = {
+    "none": lambda x, v, g: 0 * x,
+    "coulomb_friction": lambda x, v, g: ca.tanh(v / (1e-4 * V)),
+    "quadratic_damping": lambda x, v, g: v * ca.fabs(v),
+    "velocity_squared": lambda x, v, g: v**2,
+    "cubic_damping": lambda x, v, g: v**3,
+    "cubic_stiffness": lambda x, v, g: x**3,
+    "quadratic_stiffness": lambda x, v, g: x * ca.fabs(x),
+    "clearance": lambda x, v, g: ca.fmax(ca.fabs(x) - g, 0) * ca.tanh(x / (1e-4 * X)),
+}
+
+
+def _simulator(basis, records):
+    """Both records' noise-free (x, v) from x(0) = v(0) = 0 under x'' = p0 F + p1 x + p2 v + p3 phi(x, v, p4),
+    by RK4 with two substeps per sample and the input linear between samples; with its Jacobian in p."""
+    x, p, u0, u1 = ca.SX.sym("x", 2), ca.SX.sym("p", 5), ca.SX.sym("u0"), ca.SX.sym("u1")
+    h = 1.0 / FS / 2
+
+    def f(z, u):
+        return ca.vertcat(z[1], p[0] * u + p[1] * z[0] + p[2] * z[1] + p[3] * basis(z[0], z[1], p[4]))
+
+    z = x
+    for k in range(2):
+        ua, um, ub = (u0 + (u1 - u0) * (k + c) / 2 for c in (0.0, 0.5, 1.0))
+        k1 = f(z, ua)
+        k2 = f(z + h / 2 * k1, um)
+        k3 = f(z + h / 2 * k2, um)
+        k4 = f(z + h * k3, ub)
+        z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    step = ca.Function("step", [x, p, u0, u1], [z])
+    P = ca.MX.sym("P", 5)
+    outs = []
+    for r in records:
+        u = r.inputs[:, 0]
+        traj = step.mapaccum(len(u) - 1)(ca.DM.zeros(2), ca.repmat(P, 1, len(u) - 1), u[None, :-1], u[None, 1:])
+        outs.append(ca.horzcat(ca.DM.zeros(2), traj))
+    Y = ca.vec(ca.vertcat(*[o.T for o in outs]))  # columns: x of every record, then v of every record
+    return ca.Function("sim", [P], [Y, ca.jacobian(Y, P)])
+
+
+def _fit(sim, p0, free, weights):
+    """Gauss-Newton with Levenberg damping on the coefficients ``free``: (best p, weighted squared residual)."""
+    target = weights["y"]
+    p, lam = np.array(p0, dtype=float), 1e-3
+    y, J = (np.asarray(a) for a in sim(p))
+    r = (y[:, 0] - target) * weights["w"]
+    cost = r @ r
+    for _ in range(60):
+        A = J[:, free] * weights["w"][:, None]
+        H, g = A.T @ A, A.T @ r
+        D = np.diag(np.diag(H) + 1e-9 * np.trace(H) / len(free))  # a gap whose force is still zero has no curvature
+        step = np.linalg.solve(H + lam * D, g)
+        trial = p.copy()
+        trial[free] -= step
+        y2, J2 = (np.asarray(a) for a in sim(trial))
+        r2 = (y2[:, 0] - target) * weights["w"]
+        c2 = r2 @ r2
+        if np.isfinite(c2) and c2 < cost:
+            done = cost - c2 < 1e-10 * max(cost, 1e-300) + 1e-12
+            p, r, J, cost, lam = trial, r2, J2, c2, max(lam / 10, 1e-12)
+            if done:
+                break
+        else:
+            lam *= 10
+            if lam > 1e10:
+                break
+    return p, cost
+
+
+def information(args):
+    """How far each hidden effect is, in noise units, from the best model with another effect (or none).
+
+    Under the truth, the log Bayes factor of the true model over a rival has mean about delta^2 / 2 and standard
+    deviation delta, where delta^2 = min over the rival's coefficients of sum((y_true - y_rival)^2 / sigma^2) on the
+    noise-free records (its own Occam factor aside): an upper bound on what any evidence-based test can tell from
+    these records. ``P(> m nats)`` is the chance that one seed clears a margin of m nats, Phi((delta^2/2 - m)/delta).
+    """
+    from scipy.stats import norm
+
+    rivals = ["none"] + [e for e in EFFECTS]
+    print("delta^2 / 2 (nats) of each rival against the truth, two records (4 s + 2 s at a quarter of the force); "
+          "P(> 3 nats) for the closest effect")
+    print("| hidden | size | noise | " + " | ".join(rivals) + " | closest effect | P(> 3 nats) |")
+    print("|---|---|---|" + "---|" * len(rivals) + "---|---|")
+    for effect in args.effects:
+        for size in args.sizes:
+            records = clean_records(oscillator(EFFECTS[effect](size)))
+            truth = np.array([1 / M, -K / M, -C / M, -SCALE[effect](size) / M, 0.5 * X])
+            y = np.asarray(_simulator(BASIS[effect], records)(truth)[0])[:, 0]
+            # at unit relative noise (sigma = each channel's std); delta^2 scales as 1 / noise^2
+            sig = np.concatenate([np.full(r.n_samples, np.std(r.column(c))) for c in ("x", "v") for r in records])
+            weights, unit = {"y": y, "w": 1.0 / sig}, {}
+            for rival in rivals:
+                if rival == effect:
+                    continue
+                sim = _simulator(BASIS[rival], records)
+                start, _ = _fit(sim, np.where(np.arange(5) == 3, 0.0, truth), [0, 1, 2], weights)  # linear first
+                free = [0, 1, 2] if rival == "none" else [0, 1, 2, 3] + ([4] if rival == "clearance" else [])
+                unit[rival] = 0.5 * _fit(sim, start, free, weights)[1]
+            closest = min((r for r in unit if r != "none"), key=unit.get)
+            for noise in args.noise:
+                half = {r: v / noise**2 for r, v in unit.items()}
+                d2 = 2 * half[closest]
+                p3 = float(norm.cdf((d2 / 2 - 3) / np.sqrt(max(d2, 1e-300))))
+                cells = " | ".join("-" if r == effect else f"{half[r]:.3g}" for r in rivals)
+                print(f"| {effect} | {100 * size:g} % | {100 * noise:g} % | {cells} | {closest} | {p3:.2f} |",
+                      flush=True)
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--part", choices=["detection", "cases", "beyond", "false-alarms", "all"], default="all")
+    p.add_argument("--part", choices=["detection", "cases", "beyond", "false-alarms", "information", "all"], default="all")
     p.add_argument("--size", type=float, default=0.01, help="effect size of --part cases (share of the force)")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--null-seeds", type=int, default=200)
@@ -266,11 +381,13 @@ def main():
     p.add_argument("--records", default="1,2")
     p.add_argument("--evidence", default="equation-error,output-error")
     p.add_argument("--effects", default=",".join(EFFECTS))
+    p.add_argument("--sizes", default="0.0025,0.005,0.01,0.02", help="effect sizes of --part information")
     args = p.parse_args()
     args.noise = [float(s) for s in args.noise.split(",")]
     args.records = [int(s) for s in args.records.split(",")]
     args.evidence = args.evidence.split(",")
     args.effects = args.effects.split(",")
+    args.sizes = [float(v) for v in args.sizes.split(",")]
     args.null_cases = [w for w in args.null_cases.split(",") if w]
     print(f"peak displacement {X:.4g} m, peak velocity {V:.4g} m/s, force amplitude {FA:.4g} N")
     if args.part in ("detection", "all"):
@@ -281,6 +398,8 @@ def main():
         beyond(args)
     if args.part in ("false-alarms", "all"):
         false_alarms(args)
+    if args.part in ("information", "all"):
+        information(args)
 
 
 if __name__ == "__main__":
