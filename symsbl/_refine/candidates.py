@@ -82,6 +82,9 @@ def prior(engine: Engine) -> np.ndarray:
     for eq, full in zip(model.equations, engine.full.equations):
         if full.fixed:
             continue
+        if len(full.terms) == len(eq.terms):  # no candidates: the model's own priors, no term values needed
+            alpha.extend(own_alpha(t) for t in full.terms if not t.fixed)
+            continue
         D = term_values([t.expr for t in full.terms], model, Z)
         scale = float(np.std(D[:, :len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
         for k, t in enumerate(full.terms):

@@ -124,9 +124,10 @@ def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 
 
 
 @np.errstate(over="ignore", invalid="ignore")
-def initial_states(passes: Passes, theta, X0, sweeps: int = 3):
+def initial_states(passes: Passes, theta, X0, sweeps: int = 3, tol: float = 0.1):
     """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
-    segment whose step does not lower its cost tries a quarter of it next."""
+    segment whose step does not lower its cost tries a quarter of it next. At most ``sweeps`` sweeps, fewer
+    once every segment's step was accepted and they gained less than ``tol`` nats together."""
     npar = theta.size
     H, g, rr, _ = passes.sensitivities(theta, X0)
     cost = 0.5 * rr.sum(1)
@@ -140,9 +141,12 @@ def initial_states(passes: Passes, theta, X0, sweeps: int = 3):
         H2, g2, rr2, _ = passes.sensitivities(theta, X0 + dX)
         c2 = 0.5 * rr2.sum(1)
         better = np.isfinite(c2) & (c2 <= cost)
+        gain = float(np.sum(cost[better] - c2[better]))
         X0 = X0 + dX * better[:, None]
         H[better], g[better], cost[better] = H2[better], g2[better], c2[better]
         shrink = np.where(better, 1.0, shrink / 4)
+        if gain < tol and np.all(better):
+            break  # converged: another sweep would gain less than tol nats
     return X0
 
 
