@@ -46,6 +46,8 @@ def run_command(command: str, work, quiet: bool = False) -> int:
     try:
         with sigint_recorded(repeat=REPEAT_SECONDS) as pressed:
             code, message = _outcome(command, work, quiet, pressed)
+            if pressed():  # whatever a library on the way made of the interrupt
+                code, message = _INTERRUPTED
     except KeyboardInterrupt:  # raised again as the block closed
         code, message = _INTERRUPTED
     if code == _INTERRUPTED[0]:
@@ -67,18 +69,15 @@ def _outcome(command: str, work, quiet: bool, pressed) -> tuple[int, str | None]
     try:
         with progress_enabled(False) if quiet else contextlib.nullcontext(), warnings.catch_warnings():
             warnings.showwarning = _warning_line(command, pressed)
-            code = work()
+            return work(), None
     except KeyboardInterrupt:
         return _INTERRUPTED
     except (SymsblError, MissingExtraError) as exc:
-        return _INTERRUPTED if pressed() else (2, " ".join(str(exc).split()))
+        return 2, " ".join(str(exc).split())
     except MemoryError:
         return 2, "out of memory: use a shorter record, fewer candidate terms or a lower --degree"
     except Exception as exc:  # noqa: BLE001 - a bug: one line unless asked for the traceback
-        if pressed():
-            return _INTERRUPTED
-        if os.environ.get("SYMSBL_TRACEBACK"):
+        if os.environ.get("SYMSBL_TRACEBACK") and not pressed():
             raise
         return 3, (f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
                    "rerun with SYMSBL_TRACEBACK=1 and report it")
-    return _INTERRUPTED if pressed() else (code, None)
