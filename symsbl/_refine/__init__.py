@@ -34,7 +34,7 @@ from .._model import IdentifiedModel
 from .._progress import Progress
 from .._trajectory import Trajectory
 from .candidates import Rebased, candidates as propose, extend, prior
-from .engine import Engine, Settings, residual_fraction, stopwatch, to_model
+from .engine import Engine, Settings, design_rows, residual_fraction, state_guess, stopwatch, to_model
 from .problem import INTERPOLATIONS, check_records, window_plan
 from .screen import screen_terms
 from .selection import penalty, select as select_terms
@@ -174,7 +174,9 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                  screening: bool):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed."""
-    candidates = propose(model, library) if select else {}
+    candidates, twins = {}, {}
+    if select and library is not None:
+        candidates, twins = propose(model, library, design_rows(model, used, state_guess(model, used, measured)))
     engine = Engine(model, used, measured, settings, candidates)
     alpha = prior(engine)
     theta0 = np.zeros(len(engine.positions))
@@ -194,7 +196,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
             # a residual still correlated with every candidate in (unmodelled dynamics, a closed loop) carries
             # fewer independent samples than it counts: each term must then earn proportionally more
             sol = select_terms(engine, sol, alpha,
-                               lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide))
+                               lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide), twins)
             bar.update()
         fraction = residual_fraction(engine, sol)
     info = {"refine": {

@@ -1,7 +1,8 @@
 """What the output-error selection tries, and with which prior.
 
 - :class:`Rebased`: the candidate library written in the model's own symbols;
-- :func:`candidates`: per equation, the equation-error runners-up and indistinguishable terms;
+- :func:`candidates`: per equation, the equation-error runners-up and indistinguishable terms, and the
+  library's look-alikes of its terms;
 - :func:`prior`: prior precisions of every coefficient of a compiled structure;
 - :func:`extend`: a structure widened by terms the output-error screen proposed.
 """
@@ -16,9 +17,9 @@ import numpy as np
 from .._errors import ParameterError, expected
 from .._library import Library, Term
 from .._model import IdentifiedModel
-from .engine import Engine
+from .engine import Engine, design_rows
 
-__all__ = ["Rebased", "candidates", "prior", "extend"]
+__all__ = ["Rebased", "candidates", "look_alikes", "LOOK_ALIKE", "PER_EQUATION", "prior", "extend"]
 
 
 class Rebased:
@@ -45,20 +46,69 @@ class Rebased:
         return self._by_name[name]
 
 
-def candidates(model: IdentifiedModel, library: Rebased | None) -> dict:
-    """Terms to try in each equation: the equation-error runners-up and indistinguishables (at most 4)."""
+#: Partial cosine with a selected term (the other terms of its equation projected out) above which a
+#: library term is tried in its place: the equation error, on an estimated velocity, can rank ``sin(v)``
+#: over ``v`` (partial cosine 0.99 at |v| < 2) where the output error separates them by thousands of nats.
+LOOK_ALIKE = 0.95
+#: Terms tried per equation at most.
+PER_EQUATION = 6
+
+
+def candidates(model: IdentifiedModel, library: Rebased | None, Z: np.ndarray | None = None):
+    """Terms to try in each equation: the equation-error indistinguishables, each term's closest look-alike
+    in the library (see :data:`LOOK_ALIKE`; with ``Z``, rows of states and inputs) and the runners-up, at
+    most :data:`PER_EQUATION`.
+
+    Returns ``({state: [(expr, 0.0), ...]}, {state: {look-alike: term}})``: a look-alike is tried in its
+    term's place, not beside it (see :func:`symsbl._refine.selection.select`).
+    """
     if library is None:
-        return {}
-    out = {}
+        return {}, {}
+    out, twins = {}, {}
     for eq in model.equations:
         if eq.fixed:
             continue
-        names = [n for t in eq.terms for n in t.alternatives] + list(eq.runners_up)
+        alike = look_alikes(eq, library, model, Z) if Z is not None else {}
+        names = [n for t in eq.terms for n in t.alternatives] + list(alike) + list(eq.runners_up)
         present = set(eq.names)
-        exprs = [library[n].expr for n in dict.fromkeys(names) if n in library and n not in present]
-        if exprs:
-            out[eq.lhs] = [(e, 0.0) for e in exprs[:4]]
-    return out
+        kept = [n for n in dict.fromkeys(names) if n in library and n not in present][:PER_EQUATION]
+        if kept:
+            out[eq.lhs] = [(library[n].expr, 0.0) for n in kept]
+            twins[eq.lhs] = {n: alike[n] for n in kept if n in alike}
+    return out, twins
+
+
+def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray) -> dict:
+    """Per free term of ``eq``, the library term (not in ``eq``, not already its alternative or runner-up)
+    whose values on ``Z``, with the equation's other terms projected out, are closest in direction to the
+    term's, when their partial cosine reaches :data:`LOOK_ALIKE`: ``{look-alike: term}``."""
+    if not eq.terms:
+        return {}
+    taken = set(eq.names) | {a for t in eq.terms for a in t.alternatives} | set(eq.runners_up)
+    pool = [t for t in library.terms if t.name not in taken]
+    if not pool:
+        return {}
+    with np.errstate(all="ignore"):
+        A = term_values([t.expr for t in eq.terms], model, Z)
+        D = term_values([t.expr for t in pool], model, Z)
+    usable = np.flatnonzero(np.all(np.isfinite(D), axis=0))
+    if not np.all(np.isfinite(A)) or not usable.size:
+        return {}
+    found = {}
+    for j, term in enumerate(eq.terms):
+        if term.fixed:
+            continue
+        others = np.delete(A, j, axis=1)
+        Q = np.linalg.qr(others)[0] if others.shape[1] else np.zeros((len(Z), 0))
+        rj = A[:, j] - Q @ (Q.T @ A[:, j])
+        R = D[:, usable] - Q @ (Q.T @ D[:, usable])
+        norms = np.linalg.norm(R, axis=0) * np.linalg.norm(rj)
+        cos = np.abs(rj @ R) / np.where(norms > 0, norms, np.inf)
+        best = int(np.argmax(cos))
+        name = pool[usable[best]].name
+        if cos[best] >= LOOK_ALIKE and name not in found:
+            found[name] = term.name
+    return found
 
 
 def term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
@@ -74,10 +124,7 @@ def prior(engine: Engine) -> np.ndarray:
     indistinguishable from a term, that term's prior on the same contribution; for another candidate
     ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
     model = engine.model
-    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
-         else np.zeros((r.n_samples, 0)) for r in engine.records]
-    Z = np.column_stack([engine.guess, np.vstack(U)])
-    Z = Z[:: max(1, len(Z) // 20000)]
+    Z = design_rows(model, engine.records, engine.guess)
     alpha = []
     for eq, full in zip(model.equations, engine.full.equations):
         if full.fixed:

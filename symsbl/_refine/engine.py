@@ -26,7 +26,7 @@ from .selection import free_positions, with_terms
 from .sensitivity import Passes
 from .solver import Solution, fit
 
-__all__ = ["Engine", "Settings", "to_model", "stopwatch", "residual_fraction"]
+__all__ = ["Engine", "Settings", "state_guess", "design_rows", "to_model", "stopwatch", "residual_fraction"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +74,30 @@ def smooth_model(model: IdentifiedModel, widths: dict) -> IdentifiedModel:
     return dataclasses.replace(model, equations=tuple(equations))
 
 
+def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
+    """Every state at every sample of ``records`` laid end to end: measured values (or a column given as a
+    guess), velocities from their positions, zeros."""
+    position_of = {v: x for x, v in model.kinematics}
+    rows = []
+    for r in records:
+        G = np.zeros((r.n_samples, len(model.states)))
+        for k, name in enumerate(model.state_names):
+            if name in measured or name in r.state_names:  # a column not measured: a guess only
+                G[:, k] = r.column(name)
+            elif name in position_of and position_of[name] in measured:
+                G[:, k] = estimate_velocity(r.t, r.column(position_of[name]))
+        rows.append(G)
+    return np.vstack(rows)
+
+
+def design_rows(model: IdentifiedModel, records, guess: np.ndarray, most: int = 20000) -> np.ndarray:
+    """Rows ``(states, inputs)`` of ``guess`` and the records' inputs, evenly thinned to at most ``most``."""
+    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
+         else np.zeros((r.n_samples, 0)) for r in records]
+    Z = np.column_stack([guess, np.vstack(U)])
+    return Z[:: max(1, len(Z) // most)]
+
+
 class Engine:
     """The compiled structure (the model and its candidates) and the records of one refinement."""
 
@@ -85,7 +109,7 @@ class Engine:
         self.base = np.array([k for k, p in enumerate(self.positions) if p in own], dtype=int)
         self.keys = [complexity(self.full.equations[i].terms[j].sympy) for i, j in self.positions]
         self.widths = _smoothing_widths(model, records)
-        self.guess = self._guess()
+        self.guess = state_guess(model, records, self.measured)
         fitted = smooth_model(self.full, self.widths) if settings.smooth else self.full
         self.param = Parameterisation.of(fitted)
         substeps = settings.substeps
@@ -95,21 +119,6 @@ class Engine:
         layout = Records.of(fitted, records, self.measured, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit)
         self.length0 = self._first_length()
-
-    def _guess(self) -> np.ndarray:
-        """Every state at every sample: measured values (or a column given as a guess), velocities from
-        their positions, zeros."""
-        model, rows = self.model, []
-        position_of = {v: x for x, v in model.kinematics}
-        for r in self.records:
-            G = np.zeros((r.n_samples, len(model.states)))
-            for k, name in enumerate(model.state_names):
-                if name in self.measured or name in r.state_names:  # a column not measured: a guess only
-                    G[:, k] = r.column(name)
-                elif name in position_of and position_of[name] in self.measured:
-                    G[:, k] = estimate_velocity(r.t, r.column(position_of[name]))
-            rows.append(G)
-        return np.vstack(rows)
 
     def _sign_rate(self) -> float:
         """The largest ``|coef| / eps`` of a ``tanh(a / eps)`` standing for ``sign(a)``: its stiffness at ``a = 0``."""
@@ -124,11 +133,14 @@ class Engine:
         X = np.column_stack([r.column(m) for m in self.measured])
         return int(max(64, 8 * WeakForm().resolve(r.t, X).window))  # the window is 0.5 / f_hi in samples
 
-    def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None) -> Solution:
+    def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,
+            longest: int | None = None) -> Solution:
         """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
-        from the segments and initial states of ``warm`` when given."""
+        from the segments and initial states of ``warm`` when given, else by continuation from short segments
+        up to ``longest`` samples (default: whole records)."""
         return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
-                   length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm)
+                   length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
+                   longest=longest)
 
 
 def residual_fraction(engine: Engine, sol: Solution) -> float:

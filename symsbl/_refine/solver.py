@@ -214,7 +214,8 @@ def _prior_precisions(H, theta, alpha, active):
 
 
 def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
-        update_noise: bool = True, mackay: bool = True, tol: float = 1e-4, warm: Solution | None = None) -> Solution:
+        update_noise: bool = True, mackay: bool = True, tol: float = 1e-4, warm: Solution | None = None,
+        longest: int | None = None) -> Solution:
     """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
 
     Parameters
@@ -237,12 +238,15 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     warm : Solution, optional
         A solution of a nearby structure: its segments, initial states and noise are the start, and
         the segments do not grow again (the structure's optimum is near).
+    longest : int, optional
+        The segments grow to at most this length (default: whole records).
     """
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
     n_total = passes.records.n_total
     passes.use_weights(noise_precisions(passes.Y[:n_total], passes.valid[:n_total]) if w is None else w)
     full = int(passes.records.lengths.max())
+    full = full if longest is None else min(int(longest), full)
     length = min(length0, full)
     if warm is not None:
         passes.use_segments(warm.starts)
