@@ -174,10 +174,11 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                  screening: bool):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed."""
+    guess = state_guess(model, used, measured)
     candidates, twins = {}, {}
     if select and library is not None:
-        candidates, twins = propose(model, library, design_rows(model, used, state_guess(model, used, measured)))
-    engine = Engine(model, used, measured, settings, candidates)
+        candidates, twins = propose(model, library, design_rows(model, used, guess))
+    engine = Engine(model, used, measured, settings, candidates, guess=guess)
     alpha = prior(engine)
     theta0 = np.zeros(len(engine.positions))
     theta0[engine.base] = engine.param.theta0[engine.base]

@@ -54,21 +54,22 @@ LOOK_ALIKE = 0.95
 PER_EQUATION = 6
 
 
-def candidates(model: IdentifiedModel, library: Rebased | None, Z: np.ndarray | None = None):
+def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     """Terms to try in each equation: the equation-error indistinguishables, each term's closest look-alike
-    in the library (see :data:`LOOK_ALIKE`; with ``Z``, rows of states and inputs) and the runners-up, at
+    in the library on the rows ``Z`` of states and inputs (see :data:`LOOK_ALIKE`) and the runners-up, at
     most :data:`PER_EQUATION`.
 
     Returns ``({state: [(expr, 0.0), ...]}, {state: {look-alike: term}})``: a look-alike is tried in its
     term's place, not beside it (see :func:`symsbl._refine.selection.select`).
     """
-    if library is None:
-        return {}, {}
+    with np.errstate(all="ignore"):
+        values = term_values([t.expr for t in library.terms], model, Z)
+    finite = np.all(np.isfinite(values), axis=0)
     out, twins = {}, {}
     for eq in model.equations:
         if eq.fixed:
             continue
-        alike = look_alikes(eq, library, model, Z) if Z is not None else {}
+        alike = look_alikes(eq, library, model, Z, values, finite)
         names = [n for t in eq.terms for n in t.alternatives] + list(alike) + list(eq.runners_up)
         present = set(eq.names)
         kept = [n for n in dict.fromkeys(names) if n in library and n not in present][:PER_EQUATION]
@@ -78,21 +79,19 @@ def candidates(model: IdentifiedModel, library: Rebased | None, Z: np.ndarray | 
     return out, twins
 
 
-def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray) -> dict:
+def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray, values: np.ndarray,
+                finite: np.ndarray) -> dict:
     """Per free term of ``eq``, the library term (not in ``eq``, not already its alternative or runner-up)
     whose values on ``Z``, with the equation's other terms projected out, are closest in direction to the
-    term's, when their partial cosine reaches :data:`LOOK_ALIKE`: ``{look-alike: term}``."""
-    if not eq.terms:
-        return {}
+    term's, when their partial cosine reaches :data:`LOOK_ALIKE`: ``{look-alike: term}``. ``values``: the
+    library's terms on ``Z``; ``finite``: which of them are finite there."""
     taken = set(eq.names) | {a for t in eq.terms for a in t.alternatives} | set(eq.runners_up)
-    pool = [t for t in library.terms if t.name not in taken]
-    if not pool:
+    usable = np.flatnonzero([finite[k] and t.name not in taken for k, t in enumerate(library.terms)])
+    if not eq.terms or not usable.size:
         return {}
     with np.errstate(all="ignore"):
         A = term_values([t.expr for t in eq.terms], model, Z)
-        D = term_values([t.expr for t in pool], model, Z)
-    usable = np.flatnonzero(np.all(np.isfinite(D), axis=0))
-    if not np.all(np.isfinite(A)) or not usable.size:
+    if not np.all(np.isfinite(A)):
         return {}
     found = {}
     for j, term in enumerate(eq.terms):
@@ -101,11 +100,11 @@ def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray) -> 
         others = np.delete(A, j, axis=1)
         Q = np.linalg.qr(others)[0] if others.shape[1] else np.zeros((len(Z), 0))
         rj = A[:, j] - Q @ (Q.T @ A[:, j])
-        R = D[:, usable] - Q @ (Q.T @ D[:, usable])
+        R = values[:, usable] - Q @ (Q.T @ values[:, usable])
         norms = np.linalg.norm(R, axis=0) * np.linalg.norm(rj)
         cos = np.abs(rj @ R) / np.where(norms > 0, norms, np.inf)
         best = int(np.argmax(cos))
-        name = pool[usable[best]].name
+        name = library.terms[usable[best]].name
         if cos[best] >= LOOK_ALIKE and name not in found:
             found[name] = term.name
     return found
@@ -168,7 +167,7 @@ def extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: d
                 new = True
     if not new:
         return engine, sol, alpha
-    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged)
+    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged, guess=engine.guess)
     alpha = prior(wider)
     theta = np.zeros(len(wider.positions))
     theta[wider.base] = sol.theta[engine.base]

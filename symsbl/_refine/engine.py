@@ -101,7 +101,9 @@ def design_rows(model: IdentifiedModel, records, guess: np.ndarray, most: int = 
 class Engine:
     """The compiled structure (the model and its candidates) and the records of one refinement."""
 
-    def __init__(self, model: IdentifiedModel, records, measured, settings: Settings, candidates: dict):
+    def __init__(self, model: IdentifiedModel, records, measured, settings: Settings, candidates: dict,
+                 guess: np.ndarray | None = None):
+        """``guess``: :func:`state_guess` of ``records`` when the caller has it (else computed)."""
         self.model, self.records, self.measured, self.settings = model, records, tuple(measured), settings
         self.full = with_terms(model, candidates)
         self.positions = free_positions(self.full)
@@ -109,7 +111,7 @@ class Engine:
         self.base = np.array([k for k, p in enumerate(self.positions) if p in own], dtype=int)
         self.keys = [complexity(self.full.equations[i].terms[j].sympy) for i, j in self.positions]
         self.widths = _smoothing_widths(model, records)
-        self.guess = state_guess(model, records, self.measured)
+        self.guess = state_guess(model, records, self.measured) if guess is None else guess
         fitted = smooth_model(self.full, self.widths) if settings.smooth else self.full
         self.param = Parameterisation.of(fitted)
         substeps = settings.substeps

@@ -133,8 +133,8 @@ def _extended(engine: Engine, first, every: np.ndarray, alpha: np.ndarray):
     that should take over a term's role (``v`` for ``sin(v)``) needs a large move of every coefficient
     that the long horizon makes non-convex (measured: 52177 nats against 80161 from short segments). When
     the continuation stops at other segments, or fits worse than ``first`` (by more than a nat at ``first``'s
-    noise levels; a nested model cannot), the
-    fit warm-started at ``first`` is taken instead. ``None`` when both run away.
+    noise levels; a nested model cannot), the fit warm-started at ``first`` is taken instead. ``None`` when
+    both run away.
     """
     cold = None
     try:
