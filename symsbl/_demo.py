@@ -153,7 +153,8 @@ def _table(results: list[DemoResult], out) -> None:
         cells = [(r.truth.max_error(min_share=0.05), r.truth.max_error(), _worst(r.heldout))]
         if r.start is not None:
             cells.insert(0, (r.start.max_error(min_share=0.05), r.start.max_error(), _worst(r.start_heldout)))
-        big, small, held = (" -> ".join(c) for c in zip(*[(f"{100 * a:.3f}", f"{100 * b:.3f}", h) for a, b, h in cells]))
+        columns = zip(*[(f"{100 * a:.3f}", f"{100 * b:.3f}", h) for a, b, h in cells])
+        big, small, held = (" -> ".join(c) for c in columns)
         out(f"{r.name:20s} {'exact' if r.truth.exact_support else 'WRONG':>8s} {big:>20s} {small:>20s} {held:>20s} "
             f"{r.seconds:6.1f}s")
     out(("\nequation error -> output error. " if refined else "\n")

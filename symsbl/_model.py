@@ -1,9 +1,8 @@
 """The identified model: posterior per equation, rendered as a symbolic ODE.
 
-An :class:`IdentifiedModel` holds, for each state equation ``x_k' = sum_i beta_i d_i(x, u)``, the
-kept candidate terms (CasADi expressions, the single source of truth for names and sympy forms),
-their posterior means, standard deviations and covariance, prior precisions, the noise variance
-and the log evidence. It renders as
+An :class:`IdentifiedModel` holds, for each state equation ``x_k' = sum_i beta_i d_i(x, u)``, the kept candidate
+terms (CasADi expressions, the single source of truth for names and sympy forms), their posterior means, standard
+deviations and covariance, prior precisions, the noise variance and the log evidence. It renders as
 
 - a readable print with uncertainties, ``x2' = 1.000(0.001) F - 1.0000e4(3) x1 - ...``;
 - a sympy system (``to_sympy``, ``to_latex``, ``_repr_latex_``);
@@ -16,6 +15,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -73,9 +73,9 @@ class TermEstimate:
     alternatives: tuple[str, ...] = ()
     fixed: bool = False
 
-    @property
+    @cached_property
     def sympy(self) -> sp.Expr:
-        """The term as a sympy expression."""
+        """The term as a sympy expression (converted once: sympy builds ``Max`` and ``Abs`` slowly)."""
         return casadi_to_sympy(self.expr)
 
     @property

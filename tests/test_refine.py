@@ -368,6 +368,39 @@ def test_substeps_bound_the_rk4_error_over_a_lightly_damped_oscillators_memory()
     assert error(1) > 10 * SUBSTEP_TOL, error(1)
 
 
+def test_only_a_sign_whose_term_jumps_is_smoothed_and_counted_as_stiffness():
+    """``sign(v)`` jumps by 2 and ``x sign(v)`` by ``2|x|`` at ``v = 0``; a clearance ``sign(x) max(|x| - g, 0)`` is
+    continuous, so it keeps its sign and adds no stiffness: a 100 rad/s oscillator at 4096 Hz with a clearance
+    takes one RK4 step per sample (its ``tanh(x / eps)`` stand-in once counted ``|coef| / eps`` and took 32),
+    and a Coulomb term's stiffness is exactly ``|coef| / eps``."""
+    import sympy as sp
+
+    from symsbl._refine.engine import Engine, Settings, sign_jumps
+
+    x, v = sp.symbols("x1 x2")
+    assert sign_jumps(sp.sign(v)) == [(sp.sign(v), 1)]
+    assert sign_jumps(x * sp.sign(v)) == [(sp.sign(v), x)]
+    assert sign_jumps(sp.sign(x) * sp.Max(0, sp.Abs(x) - sp.Rational(1, 100))) == []
+    assert sign_jumps(v * sp.Abs(v)) == [] and sign_jumps(sp.sign(v) * v**2) == []
+
+    x1, x2, F = symbols("x1 x2 F")
+    clearance = ca.sign(x1) * ca.fmax(ca.fabs(x1) - 0.008, 0)
+    for friction in (0.0, 1.0):
+        system = OdeSystem((x1, x2), (F,), (x2, F - 20 * x2 - 1e4 * x1 - 500 * clearance - friction * ca.sign(x2)))
+        record = simulate(system, time_grid(1.0, 4096), inputs=symsbl.Sine(100.0, 10.0), method="rk4")
+        library = symsbl.custom([x2, F, x1, clearance] + ([ca.sign(x2)] if friction else []), [x1, x2, F])
+        model = identify(record, library, refine=False)
+        engine = Engine(model, [record], ("x1", "x2"), Settings(), {})
+        fitted = {str(t.sympy) for eq in engine.param.model.equations for t in eq.terms}
+        assert any("Max" in name and "sign(x1)" in name for name in fitted), fitted
+        if friction:
+            assert not any("sign(x2)" in name for name in fitted), fitted  # tanh(x2 / eps) in its place
+            coulomb = next(t for t in model.equation("x2").terms if str(t.sympy) == "sign(x2)")
+            assert engine._sign_rate() == pytest.approx(abs(coulomb.coef) / engine.widths["x2"], rel=1e-12)
+        else:
+            assert engine._sign_rate() == 0.0 and engine.substeps == 1
+
+
 def test_a_constant_with_look_alikes_gets_a_prior():
     """An offset the equation error found indistinguishable from cos(x1) (a small swing): the look-alike's
     prior is scaled by the spread of its twin, which a constant does not have (this overflowed once)."""

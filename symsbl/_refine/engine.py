@@ -26,7 +26,7 @@ from .selection import free_positions, with_terms
 from .sensitivity import Passes
 from .solver import Solution, fit
 
-__all__ = ["Engine", "Settings", "state_guess", "design_rows", "to_model", "stopwatch", "residual_fraction"]
+__all__ = ["Engine", "Settings", "sign_jumps", "state_guess", "design_rows", "to_model", "stopwatch", "residual_fraction"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,18 +58,46 @@ def _width(expr: sp.Expr, widths: dict) -> float:
     return max((widths.get(n, 1.0) for n in names), default=1.0)
 
 
+def sign_jumps(expr: sp.Expr) -> list[tuple[sp.Expr, sp.Expr]]:
+    """Each ``sign(a)`` of ``expr`` across which ``expr`` jumps, with half the jump at ``a = 0``.
+
+    ``sign(x) max(0, |x| - g)`` (a clearance) is continuous: it has no jump and needs no smoothing; ``sign(v)``
+    jumps by 2, ``x sign(v)`` by ``2 |x|``. An argument that cannot be solved for zero counts as a jump of the
+    sign itself.
+    """
+    out = []
+    for atom in sorted(expr.atoms(sp.sign), key=sp.default_sort_key):
+        arg = atom.args[0]
+        half = (expr.subs(atom, 1) - expr.subs(atom, -1)) / 2
+        symbol = min(arg.free_symbols, key=sp.default_sort_key) if arg.free_symbols else None
+        roots = sp.solve(arg, symbol) if symbol is not None and not arg.is_Symbol else []
+        if arg.is_Symbol:
+            half = half.subs(arg, 0)
+        elif roots:
+            half = half.subs(symbol, roots[0])
+        else:
+            half = sp.Integer(1)
+        half = sp.simplify(half)
+        if half != 0:
+            out.append((atom, half))
+    return out
+
+
 def smooth_model(model: IdentifiedModel, widths: dict) -> IdentifiedModel:
-    """The model with ``sign(a)`` replaced by ``tanh(a / eps)``: continuous in its coefficients when simulated
-    with fixed steps, so Gauss-Newton sees a calibrated curvature."""
+    """The model with ``sign(a)`` replaced by ``tanh(a / eps)`` where the term jumps across ``a = 0``: continuous
+    in its coefficients when simulated with fixed steps, so Gauss-Newton sees a calibrated curvature. A sign
+    whose term is continuous (a clearance's ``sign(x) max(0, |x| - g)``) is kept: smoothing it would only add
+    stiffness."""
     symbols = {s.name(): s for s in model.states + model.inputs}
 
     def smooth(expr):
-        return expr.replace(sp.sign, lambda arg: sp.tanh(arg / sp.Float(_width(arg, widths))))
+        return expr.xreplace({atom: sp.tanh(atom.args[0] / sp.Float(_width(atom.args[0], widths)))
+                              for atom, _ in sign_jumps(expr)})
 
     equations = []
     for eq in model.equations:
         terms = tuple(dataclasses.replace(t, expr=sympy_to_casadi(smooth(casadi_to_sympy(t.expr)), symbols))
-                      if t.sympy.has(sp.sign) else t for t in eq.terms)
+                      if t.sympy.has(sp.sign) and sign_jumps(t.sympy) else t for t in eq.terms)
         equations.append(dataclasses.replace(eq, terms=terms))
     return dataclasses.replace(model, equations=tuple(equations))
 
@@ -123,11 +151,26 @@ class Engine:
         self.length0 = self._first_length()
 
     def _sign_rate(self) -> float:
-        """The largest ``|coef| / eps`` of a ``tanh(a / eps)`` standing for ``sign(a)``: its stiffness at ``a = 0``."""
+        """The largest stiffness ``|coef| |J| / eps`` a ``tanh(a / eps)`` standing for ``sign(a)`` adds at ``a = 0``,
+        ``J`` half the term's jump there (1 for ``sign(v)``; largest over the records' rows when it depends on
+        the states or inputs)."""
         if not self.settings.smooth:
             return 0.0
-        return max((abs(t.coef) / _width(t.sympy, self.widths) for eq in self.full.equations for t in eq.terms
-                    if t.sympy.has(sp.sign)), default=0.0)
+        rate = 0.0
+        names = self.model.state_names + self.model.input_names
+        Z = None
+        for eq in self.full.equations:
+            for t in eq.terms:
+                for atom, half in sign_jumps(t.sympy):
+                    if half.free_symbols:
+                        if Z is None:
+                            Z = design_rows(self.model, self.records, self.guess)
+                        f = sp.lambdify([sp.Symbol(n) for n in names], half, "numpy")
+                        size = float(np.max(np.abs(np.broadcast_to(f(*Z.T), Z.shape[:1]))))
+                    else:
+                        size = abs(float(half))
+                    rate = max(rate, abs(t.coef) * size / _width(atom.args[0], self.widths))
+        return rate
 
     def _first_length(self) -> int:
         """About four periods of the highest frequency the measured states carry, at least 64 samples."""

@@ -1,7 +1,7 @@
 """One compiled pass over the records: the simulation, its sensitivities and the Gauss-Newton blocks.
 
 One SX step function carries the state ``x``, its sensitivities ``S = dx/d[theta, x0]`` (the exact
-derivative of the discrete RK4 map, forward mode) and running sums of the Gauss-Newton blocks
+derivative of the discrete RK4 map, propagated through the step's Jacobian) and running sums of the Gauss-Newton blocks
 ``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every measured
 channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
 segment starts. ``mapaccum`` repeats it over chunks of samples; one MX wrapper is JIT-compiled into
@@ -69,8 +69,12 @@ def sensitivity_step(param: Parameterisation, measured, substeps: int) -> tuple[
     S = ca.SX.sym("S", nx, ns)
     sums = ca.SX.sym("sums", nsum)
     x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
-    seed = ca.vertcat(S, ca.horzcat(ca.DM.eye(npar), ca.DM.zeros(npar, nx)))  # d[x; theta]/d[theta, x0]
-    S_next = ca.jtimes(x_next, ca.vertcat(v["x"], v["theta"]), seed)
+    # S_next = dx_next/dx S + [dx_next/dtheta, 0]: the step's Jacobian (CasADi takes it in reverse mode, nx sweeps)
+    # times S costs 2-10x fewer operations than pushing all ns directions through the step in forward mode
+    # (measured: 325 against 596 for a Duffing oscillator, 11887 against 125406 for a 4-state chain with 89
+    # candidate coefficients).
+    jac = ca.jacobian(x_next, ca.vertcat(v["x"], v["theta"]))
+    S_next = jac[:, :nx] @ S + ca.horzcat(jac[:, nx:], ca.SX.zeros(nx, nx))
     reset = v["reset"] > 0.5
     x1 = ca.if_else(reset, v["x_start"], x_next)
     S1 = ca.if_else(reset, ca.SX(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
