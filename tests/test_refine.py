@@ -185,6 +185,32 @@ def test_model_reduction_scores_a_removal_as_a_refit_does():
     assert abs((refit.posterior.log_evidence - first.posterior.log_evidence) - predicted) < 0.5
 
 
+def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
+    """A pass of a large structure runs in calls of fewer samples (CasADi builds long calls of a large carried
+    state slowly); the blocks ``J^T W J``, ``J^T W r`` and the squared residuals do not depend on the call length
+    (segments cross call boundaries here) beyond round-off."""
+    from symsbl._refine.engine import Engine, Settings
+    from symsbl._refine.sensitivity import CHUNK, _chunk, chunk_size, sensitivity_step
+
+    assert chunk_size(50) == CHUNK and chunk_size(4844) == 64 and chunk_size(376) == 512
+    record, _, _ = _duffing_record(7)
+    start = identify(record, _library(), refine=False)
+    engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=2, jit=False), {})
+    passes = engine.passes
+    passes.use_weights(np.array([1e4, 1e2]))
+    passes.use_segments(passes.segment_starts(1500))
+    X0 = engine.guess[passes.starts]
+    whole = passes.sensitivities(engine.param.theta0, X0)
+    step, _ = sensitivity_step(engine.param, passes.records.measured, engine.substeps)
+    passes.chunk = 64
+    passes._sens = _chunk(step, False, passes.records.n_total, 64)
+    passes._sens_buffer = passes._sens.buffer()
+    passes.use_segments(passes.starts)
+    short = passes.sensitivities(engine.param.theta0, X0)
+    for a, b in zip(whole, short):
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
+
+
 # ---------------------------------------------------------------------------- scenarios
 
 

@@ -24,8 +24,21 @@ from .problem import Parameterisation, Records
 
 __all__ = ["Passes"]
 
-#: Samples per compiled call.
+#: Samples per compiled call (at most: see :func:`chunk_size`).
 CHUNK = 4096
+#: Carried values times samples of one call of the sensitivity pass at most. CasADi builds the ``mapaccum`` of a
+#: call in a time that grows faster than the size of what it returns (measured on a 4844-value carried state, a
+#: 4-state chain with 89 candidate coefficients: 9.1 s for 4096 samples, 0.5 s for 128, 0.04 s for 64).
+MAP_VALUES = 2**18
+
+
+def chunk_size(n_carried: int) -> int:
+    """Samples per call of a pass carrying ``n_carried`` values: :data:`CHUNK`, halved down to 64 until the call
+    returns at most :data:`MAP_VALUES` values."""
+    chunk = CHUNK
+    while chunk > 64 and n_carried * chunk > MAP_VALUES:
+        chunk //= 2
+    return chunk
 #: ``jit="auto"`` compiles the passes for records of at least this many samples (or when the same
 #: structure is fitted again). A fit takes 15-40 passes; on CasADi's virtual machine a pass costs 2-35 us a
 #: sample (a Duffing oscillator to a 3-state Bouc-Wen model with its candidates), compiling 0.5-4 s: the
@@ -101,16 +114,16 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
                        ["x", "ud", "dt", "theta", "reset", "x_start"], ["x_next"], {"cse": True})
 
 
-def _chunk(step: ca.Function, jit, n_samples: int) -> ca.Function:
-    """``CHUNK`` steps of ``step`` (its first input carried), ``theta`` (input 3) given once."""
-    key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", CHUNK)
+def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Function:
+    """``chunk`` steps of ``step`` (its first input carried), ``theta`` (input 3) given once."""
+    key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", chunk)
     cached = jit_lookup(key) if jit is not False else _VM_CHUNKS.get(key)
     if cached is not None:
         return cached
-    acc = step.mapaccum("steps", CHUNK)
+    acc = step.mapaccum("steps", chunk)
     args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) if i in (0, 3)
-            else ca.MX.sym(step.name_in(i), step.size1_in(i), CHUNK) for i in range(step.n_in())]
-    call = [args[0], args[1], args[2], ca.repmat(args[3], 1, CHUNK), *args[4:]]
+            else ca.MX.sym(step.name_in(i), step.size1_in(i), chunk) for i in range(step.n_in())]
+    call = [args[0], args[1], args[2], ca.repmat(args[3], 1, chunk), *args[4:]]
     wrapper = ca.Function(f"{step.name()}_chunk", args, [acc(*call)], step.name_in(), step.name_out())
     if jit is False:  # building the map of a large step takes seconds: kept for the structure's next records
         _VM_CHUNKS[key] = wrapper
@@ -132,7 +145,8 @@ class Passes:
     def __init__(self, param: Parameterisation, records: Records, jit="auto"):
         self.param, self.records = param, records
         step, self.layout = sensitivity_step(param, records.measured, records.substeps)
-        self._sens = _chunk(step, jit, records.n_total)
+        self.chunk = chunk_size(self.layout["nz"])  # divides CHUNK, the padding and the plain simulation's calls
+        self._sens = _chunk(step, jit, records.n_total, self.chunk)
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
         self._state = None  # compiled when a plain simulation is asked for
         self.jit = jit
@@ -160,7 +174,7 @@ class Passes:
 
     def use_segments(self, starts: np.ndarray) -> None:
         """Reset flags and the bookkeeping of pieces (segments split at chunk starts)."""
-        n, C = self.records.n_total, CHUNK
+        n, C = self.records.n_total, self.chunk
         self.starts = starts
         self.RESET[:] = 0.0
         self.RESET[starts] = 1.0
@@ -182,7 +196,7 @@ class Passes:
     def sensitivities(self, theta: np.ndarray, X0: np.ndarray):
         """Per segment: ``H = J^T W J`` ``(K, ns, ns)``, ``g = J^T W r`` ``(K, ns)``, the weighted squared
         residuals per channel ``(K, ny)`` and ``S^T`` at the segment ends ``(K, ns, nx)``."""
-        lay, C = self.layout, CHUNK
+        lay, C = self.layout, self.chunk
         nx, ns, ntri = lay["nx"], lay["ns"], lay["ntri"]
         self.X_START[self.starts] = X0
         theta = np.ascontiguousarray(theta, dtype=float)
