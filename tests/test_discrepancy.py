@@ -85,7 +85,7 @@ def test_hidden_effect_is_named_fitted_and_cuts_the_heldout_error(name):
     assert report.added[0].label.startswith(name)
     assert report.verdict == f"added {report.added[0].label}; then nothing missing"
     if name == "clearance":
-        assert report.added[0].shape == pytest.approx(0.008, rel=0.05)
+        assert report.added[0].shape == pytest.approx(0.008, rel=0.01)
 
 
 NULL_CASES = {
@@ -122,6 +122,22 @@ def test_two_hidden_effects_are_found_in_two_iterations():
     assert eq.coef("x1**3") == pytest.approx(-3.8e5, rel=0.1)
     assert eq.coef("x2") == pytest.approx(-20.0, rel=0.02)
     assert report.steps[-1].error_heldout < 1.1 * NOISE < 1.25 * NOISE < report.steps[0].error_heldout
+
+
+def test_a_gap_between_grid_points_is_refined_to_its_value_and_nothing_makes_up_for_it():
+    """m 2.5, c 4, k 3e4, a 9e3 N/m clearance at 4 mm (0.107 of the training amplitude, between the 0.1 and 0.2
+    grid points), 1 kHz, 1 % noise, displacement and velocity. The shape refinement's rounds bring the gap within
+    1 % (one round left it 17 % off, and the search then added y|y|, y^3 and sign(y) to make up for it)."""
+    x, v, F = (ca.SX.sym(n) for n in ("x1", "x2", "F"))
+    rhs = (v, (F - 4.0 * v - 3e4 * x - 9e3 * ca.sign(x) * ca.fmax(ca.fabs(x) - 0.004, 0)) / 2.5)
+    system = OdeSystem((x, v), (F,), rhs, (), (), "gap")
+    out = [simulate(system, time_grid(dur, 1000.0), inputs=symsbl.Multisine(rms=rms, f_min=2.0, f_max=40.0, seed=s),
+                    method="rk4").with_noise(0.01, seed=s + 1) for dur, rms, s in ((6.0, 80.0, 3), (3.0, 40.0, 9))]
+    report = discrepancy(out[0], "x1: x2; x2: F, x1, x2", heldout=out[1], rule=symsbl.DecisionRule(n_bootstrap=0))
+    assert [a.effect for a in report.added] == ["clearance"], report.verdict
+    assert report.added[0].shape == pytest.approx(0.004, rel=0.01)
+    assert report.added[0].coef == pytest.approx(-9e3 / 2.5, rel=0.02)
+    assert report.steps[-1].decision == "nothing missing"
 
 
 def test_a_user_effect_is_found_by_name():
