@@ -404,10 +404,10 @@ def test_only_a_sign_whose_term_jumps_is_smoothed_and_counted_as_stiffness():
     from symsbl._refine.engine import Engine, Settings, sign_jumps
 
     x, v = sp.symbols("x1 x2")
-    assert sign_jumps(sp.sign(v)) == [(sp.sign(v), 1)]
-    assert sign_jumps(x * sp.sign(v)) == [(sp.sign(v), x)]
-    assert sign_jumps(sp.sign(x) * sp.Max(0, sp.Abs(x) - sp.Rational(1, 100))) == []
-    assert sign_jumps(v * sp.Abs(v)) == [] and sign_jumps(sp.sign(v) * v**2) == []
+    assert sign_jumps(sp.sign(v)) == ((sp.sign(v), 1),)
+    assert sign_jumps(x * sp.sign(v)) == ((sp.sign(v), x),)
+    assert sign_jumps(sp.sign(x) * sp.Max(0, sp.Abs(x) - sp.Rational(1, 100))) == ()
+    assert sign_jumps(v * sp.Abs(v)) == () and sign_jumps(sp.sign(v) * v**2) == ()
 
     x1, x2, F = symbols("x1 x2 F")
     clearance = ca.sign(x1) * ca.fmax(ca.fabs(x1) - 0.008, 0)

@@ -9,6 +9,7 @@ evidences are computed on the same records with the same segmentation.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 
@@ -18,7 +19,7 @@ import sympy as sp
 from .._kinematics import estimate_velocity
 from .._model import Equation, FitMethod, IdentifiedModel, TermEstimate
 from .._selection import complexity
-from .._symbolic import casadi_to_sympy, sympy_to_casadi
+from .._symbolic import sympy_to_casadi
 from .._weakform import WeakForm
 from .laplace import reduce_model
 from .problem import Parameterisation, Records, choose_substeps
@@ -26,7 +27,8 @@ from .selection import free_positions, with_terms
 from .sensitivity import Passes
 from .solver import Solution, fit
 
-__all__ = ["Engine", "Settings", "sign_jumps", "state_guess", "design_rows", "to_model", "stopwatch", "residual_fraction"]
+__all__ = ["Engine", "Settings", "sign_jumps", "state_guess", "design_rows", "to_model", "stopwatch",
+           "residual_fraction"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,29 +60,28 @@ def _width(expr: sp.Expr, widths: dict) -> float:
     return max((widths.get(n, 1.0) for n in names), default=1.0)
 
 
-def sign_jumps(expr: sp.Expr) -> list[tuple[sp.Expr, sp.Expr]]:
+@functools.lru_cache(maxsize=1024)
+def sign_jumps(expr: sp.Expr) -> tuple[tuple[sp.Expr, sp.Expr], ...]:
     """Each ``sign(a)`` of ``expr`` across which ``expr`` jumps, with half the jump at ``a = 0``.
 
     ``sign(x) max(0, |x| - g)`` (a clearance) is continuous: it has no jump and needs no smoothing; ``sign(v)``
     jumps by 2, ``x sign(v)`` by ``2 |x|``. An argument that cannot be solved for zero counts as a jump of the
-    sign itself.
+    sign itself. Cached: every engine of a search asks again about the same terms.
     """
     out = []
     for atom in sorted(expr.atoms(sp.sign), key=sp.default_sort_key):
         arg = atom.args[0]
         half = (expr.subs(atom, 1) - expr.subs(atom, -1)) / 2
-        symbol = min(arg.free_symbols, key=sp.default_sort_key) if arg.free_symbols else None
-        roots = sp.solve(arg, symbol) if symbol is not None and not arg.is_Symbol else []
         if arg.is_Symbol:
             half = half.subs(arg, 0)
-        elif roots:
-            half = half.subs(symbol, roots[0])
         else:
-            half = sp.Integer(1)
+            symbol = min(arg.free_symbols, key=sp.default_sort_key) if arg.free_symbols else None
+            roots = sp.solve(arg, symbol) if symbol is not None else []
+            half = half.subs(symbol, roots[0]) if roots else sp.Integer(1)
         half = sp.simplify(half)
         if half != 0:
             out.append((atom, half))
-    return out
+    return tuple(out)
 
 
 def smooth_model(model: IdentifiedModel, widths: dict) -> IdentifiedModel:
@@ -90,16 +91,15 @@ def smooth_model(model: IdentifiedModel, widths: dict) -> IdentifiedModel:
     stiffness."""
     symbols = {s.name(): s for s in model.states + model.inputs}
 
-    def smooth(expr):
-        return expr.xreplace({atom: sp.tanh(atom.args[0] / sp.Float(_width(atom.args[0], widths)))
-                              for atom, _ in sign_jumps(expr)})
+    def smooth(t: TermEstimate) -> TermEstimate:
+        jumps = sign_jumps(t.sympy)
+        if not jumps:
+            return t
+        tanh = {atom: sp.tanh(atom.args[0] / sp.Float(_width(atom.args[0], widths))) for atom, _ in jumps}
+        return dataclasses.replace(t, expr=sympy_to_casadi(t.sympy.xreplace(tanh), symbols))
 
-    equations = []
-    for eq in model.equations:
-        terms = tuple(dataclasses.replace(t, expr=sympy_to_casadi(smooth(casadi_to_sympy(t.expr)), symbols))
-                      if t.sympy.has(sp.sign) and sign_jumps(t.sympy) else t for t in eq.terms)
-        equations.append(dataclasses.replace(eq, terms=terms))
-    return dataclasses.replace(model, equations=tuple(equations))
+    equations = tuple(dataclasses.replace(eq, terms=tuple(smooth(t) for t in eq.terms)) for eq in model.equations)
+    return dataclasses.replace(model, equations=equations)
 
 
 def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:

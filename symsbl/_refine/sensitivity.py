@@ -1,9 +1,9 @@
 """One compiled pass over the records: the simulation, its sensitivities and the Gauss-Newton blocks.
 
 One SX step function carries the state ``x``, its sensitivities ``S = dx/d[theta, x0]`` (the exact
-derivative of the discrete RK4 map, propagated through the step's Jacobian) and running sums of the Gauss-Newton blocks
-``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every measured
-channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
+derivative of the discrete RK4 map, propagated through the step's Jacobian) and running sums of the
+Gauss-Newton blocks ``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every
+measured channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
 segment starts. ``mapaccum`` repeats it over chunks of samples; one MX wrapper is JIT-compiled into
 a C loop (:func:`symsbl._casadi.jit_wrap`) and called through ``Function.buffer()``. The
 accumulators restart every chunk (bounded round-off) and per-segment totals are gathered where
@@ -31,6 +31,13 @@ CHUNK = 4096
 #: 4-state chain with 89 candidate coefficients: 9.1 s for 4096 samples, 0.5 s for 128, 0.04 s for 64).
 MAP_VALUES = 2**18
 
+#: ``jit="auto"`` compiles the passes for records of at least this many samples (or when the same
+#: structure is fitted again). A fit takes 15-40 passes; on CasADi's virtual machine a pass costs 2-35 us a
+#: sample (a Duffing oscillator to a 3-state Bouc-Wen model with its candidates), compiling 0.5-4 s: the
+#: break-even is a few thousand samples (a 3 s Bouc-Wen record at 4096 Hz: 13 s uncompiled, 5.6 s with
+#: compiling).
+JIT_MIN_SAMPLES = 2**12
+
 
 def chunk_size(n_carried: int) -> int:
     """Samples per call of a pass carrying ``n_carried`` values: :data:`CHUNK`, halved down to 64 until the call
@@ -39,12 +46,6 @@ def chunk_size(n_carried: int) -> int:
     while chunk > 64 and n_carried * chunk > MAP_VALUES:
         chunk //= 2
     return chunk
-#: ``jit="auto"`` compiles the passes for records of at least this many samples (or when the same
-#: structure is fitted again). A fit takes 15-40 passes; on CasADi's virtual machine a pass costs 2-35 us a
-#: sample (a Duffing oscillator to a 3-state Bouc-Wen model with its candidates), compiling 0.5-4 s: the
-#: break-even is a few thousand samples (a 3 s Bouc-Wen record at 4096 Hz: 13 s uncompiled, 5.6 s with
-#: compiling).
-JIT_MIN_SAMPLES = 2**12
 
 
 def _rk4(param: Parameterisation, x, theta, ud, dt, substeps: int):
