@@ -1,10 +1,8 @@
-"""CasADi plumbing shared by the evaluator, the simulator and the output-error refinement.
+"""CasADi plumbing shared by the evaluator, the simulator and the output-error refinement
+(compilation to C is :mod:`symsbl._jit`).
 
 - operation tables: which CasADi operations make an expression non-smooth or discontinuous;
 - symbol checks: scalar SX symbols with distinct names;
-- :func:`jit_wrap`: compile a (mapped) Function into one C loop with gcc through CasADi's
-  ``shell`` JIT when a compiler exists, with a fallback to CasADi's virtual machine, cached
-  per process;
 - :func:`interrupts_kept`: a Ctrl-C that a CasADi solver notices is raised, not turned into a solver failure;
 - :func:`run_chunks`: call a Function of fixed chunk size over row-major numpy arrays through
   ``Function.buffer()``, padding the last partial chunk.
@@ -15,17 +13,9 @@ A ``(k, chunk)`` CasADi matrix is column-major, i.e. the same memory as a C-orde
 
 from __future__ import annotations
 
-import atexit
 import contextlib
-import hashlib
 import io
-import itertools
-import os
-import shutil
-import subprocess
 import sys
-import tempfile
-from collections import OrderedDict
 
 import casadi as ca
 import numpy as np
@@ -34,8 +24,7 @@ from ._errors import SymsblError, expected
 from ._interrupt import sigint_recorded
 
 __all__ = [
-    "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "compiler", "jit_wrap", "jit_lookup",
-    "interrupts_kept", "run_chunks",
+    "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "interrupts_kept", "run_chunks",
 ]
 
 #: CasADi operations whose value or slope jumps: an expression using any of them is not smooth.
@@ -54,12 +43,6 @@ DISCONTINUOUS_OPS = frozenset(
                  "NOT", "AND", "OR")
 )
 
-_JIT_FLAGS = ["-O3", "-march=native", "-w"]  # -w: generated code (empty copies) warns harmlessly
-_JIT_CACHE: OrderedDict[tuple, ca.Function] = OrderedDict()
-_JIT_CACHE_SIZE = 64
-_JIT_SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
-_JIT_DIR: str | None = None
-_COUNTER = itertools.count()
 
 
 def uses_ops(exprs, ops=NONSMOOTH_OPS) -> bool:
@@ -89,103 +72,6 @@ def scalar_symbols(symbols, what: str, error: type[SymsblError]) -> tuple[ca.SX,
     if repeated:
         raise error(expected(what, "distinct symbol names", names, f"rename the repeated {repeated}"))
     return out
-
-
-def compiler() -> str | None:
-    """The C compiler CasADi's JIT will call (gcc or cc on PATH), or None."""
-    return shutil.which("gcc") or shutil.which("cc")
-
-
-def _jit_dir() -> str:
-    global _JIT_DIR
-    if _JIT_DIR is None:
-        _JIT_DIR = tempfile.mkdtemp(prefix="symsbl_jit_")
-        atexit.register(shutil.rmtree, _JIT_DIR, True)
-    return _JIT_DIR + "/"
-
-
-def jit_lookup(key) -> ca.Function | None:
-    """A compiled function cached under ``key`` by :func:`jit_wrap`, or None."""
-    if key in _JIT_CACHE:
-        _JIT_CACHE.move_to_end(key)
-        return _JIT_CACHE[key]
-    return None
-
-
-def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
-             only_cached: bool = False, key=None) -> tuple[ca.Function, bool]:
-    """``fn`` compiled as one C function (an MX wrapper, JIT with gcc), or ``fn`` itself.
-
-    Compiling a wrapper around a ``map`` or ``mapaccum`` produces one C loop, which removes
-    CasADi's per-call overhead of the virtual machine (0.1-1 us a sample). Compiled functions are
-    cached per process by their serialised graph.
-
-    Parameters
-    ----------
-    fn : ca.Function
-    name : str
-    jit : {"auto", True, False}
-        ``"auto"`` compiles when a compiler exists and falls back silently; ``True`` requires it.
-    error : SymsblError subclass
-        Raised when ``jit=True`` cannot be honoured.
-    only_cached : bool
-        Compile only if the same function was asked for before (compiling would not pay off for one
-        short use, and does for a structure used again: fits over many records, seeds or windows).
-    key : hashable, optional
-        The cache key (default: a hash of ``fn``'s serialised graph and ``name``); a caller that
-        knows a cheaper one (the small step the function was built from) passes it.
-
-    Returns
-    -------
-    (ca.Function, bool)
-        The function to call and whether it is compiled.
-    """
-    if jit is False:
-        return fn, False
-    if compiler() is None:
-        if jit is True:
-            raise error(expected("jit", "a C compiler (gcc or cc on PATH) for jit=True", "none found",
-                                 "install gcc or pass jit='auto'", raw=True))
-        return fn, False
-    key = (hashlib.sha1(fn.serialize().encode()).hexdigest(), name) if key is None else key
-    cached = jit_lookup(key)
-    if cached is not None:
-        return cached, True
-    if only_cached and key not in _JIT_SEEN:  # compiled from the second request on: a structure used again
-        _JIT_SEEN.add(key)
-        return fn, False
-    args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
-    wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
-    try:
-        compiled = _compile(wrapper)
-    except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
-        if jit is True:
-            text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)
-            reason = (text.strip().splitlines() or [str(err)])[-1][:200]
-            raise error(expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'",
-                                 raw=True)) from None
-        return fn, False
-    _JIT_CACHE[key] = compiled
-    if len(_JIT_CACHE) > _JIT_CACHE_SIZE:
-        _JIT_CACHE.popitem(last=False)
-    return compiled, True
-
-
-def _compile(fn: ca.Function) -> ca.Function:
-    """``fn`` generated as C, compiled into a shared library by the C compiler and loaded back.
-
-    The compiler runs as a Python subprocess, so Ctrl-C during a compilation interrupts the program.
-    CasADi's own JIT starts it through ``system()``, which ignores SIGINT in the caller while the
-    compiler runs: an interrupt sent to the program in that window was lost, and the run went on.
-    """
-    base = f"{fn.name()}_{next(_COUNTER)}"
-    generator = ca.CodeGenerator(base + ".c", {"with_header": False})
-    generator.add(fn)
-    source = generator.generate(_jit_dir())
-    library = os.path.join(_jit_dir(), base + ".so")
-    subprocess.run([compiler(), *_JIT_FLAGS, "-shared", "-fPIC", source, "-o", library], check=True,
-                   capture_output=True)
-    return ca.external(fn.name(), library)
 
 
 @contextlib.contextmanager

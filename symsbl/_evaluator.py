@@ -18,7 +18,8 @@ from collections.abc import Iterator
 import casadi as ca
 import numpy as np
 
-from ._casadi import jit_wrap, run_chunks
+from ._casadi import run_chunks
+from ._jit import jit_wrap
 from ._checks import choice, integer
 from ._errors import LibraryError, expected
 from ._library import Library

@@ -15,7 +15,7 @@ import hashlib
 import casadi as ca
 import numpy as np
 
-from ._casadi import jit_lookup, jit_wrap
+from ._jit import jit_lookup, jit_wrap
 from ._checks import integer
 from ._errors import SimulationError
 from ._ode import OdeSystem

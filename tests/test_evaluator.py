@@ -10,12 +10,12 @@ from helpers import exactly
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import symsbl._casadi as casadi_plumbing
+import symsbl._jit as jit_module
 import symsbl._evaluator as evaluator_module
 from symsbl import Evaluator, LibraryError, paper, polynomial, symbols
 
 X1, X2, X3, F = symbols("x1 x2 x3 F")
-HAS_COMPILER = casadi_plumbing.compiler() is not None
+HAS_COMPILER = jit_module.compiler() is not None
 
 
 def numpy_reference(library, Z):
@@ -83,7 +83,7 @@ def test_compiled_functions_are_cached_per_library():
 
 
 def test_auto_falls_back_without_compiler_and_true_requires_one(monkeypatch):
-    monkeypatch.setattr(casadi_plumbing, "compiler", lambda: None)
+    monkeypatch.setattr(jit_module, "compiler", lambda: None)
     evaluator_module._compile.cache_clear()
     library = polynomial((X1,), 4)
     ev = Evaluator(library, chunk_size=8)
@@ -153,8 +153,8 @@ def test_data_shape_errors_name_the_variables():
 
 
 def test_compile_failure_falls_back_silently_unless_jit_is_required(monkeypatch):
-    monkeypatch.setattr(casadi_plumbing, "compiler", lambda: "/nonexistent/compiler")
-    monkeypatch.setattr(casadi_plumbing, "_JIT_CACHE", OrderedDict())
+    monkeypatch.setattr(jit_module, "compiler", lambda: "/nonexistent/compiler")
+    monkeypatch.setattr(jit_module, "_MEMORY", OrderedDict())
     evaluator_module._compile.cache_clear()
     library = polynomial((X1, X2), 2)
     ev = Evaluator(library, chunk_size=8)
