@@ -278,6 +278,47 @@ def test_a_two_dof_chain_with_a_cubic_spring():
     _check(oe, truth, check)
 
 
+def test_a_displacement_only_chain_finds_the_coupling_damping_the_equation_error_lost():
+    """Only x1 and x2 recorded, 500 Hz, 1 % noise, the Eq. 21 library (146 terms): the equation error misses
+    the small damping between the masses, and the output-error fit of its structure drifts every coefficient
+    to make up for it, stopping short of the whole record. Candidates started from that drift stayed in its
+    basin (evidence 46892 against 48067 without them, so nothing was added: held-out error 69 %); they are
+    now also fitted from the equation error's coefficients, and the evidence takes the damping. The records
+    are simulated by scipy (DOP853, rtol 1e-10), independently of symsbl."""
+    from scipy.integrate import solve_ivp
+    from scipy.interpolate import CubicSpline
+
+    m1, m2, k1, k2, c1, c2, kc = 1.5, 0.8, 4e3, 2.5e3, 3.0, 1.5, 1e7  # kc on (x2 - x1)^3
+
+    def record(seconds, rms, seed):  # random phases on the record's own frequency grid, 1-40 Hz
+        t = np.arange(0.0, seconds, 1 / 500)
+        freqs = np.arange(1.0, 40.0, 1 / seconds)
+        phases = np.random.default_rng(seed).uniform(0, 2 * np.pi, freqs.size)
+        force = np.sin(2 * np.pi * freqs[:, None] * t + phases[:, None]).sum(axis=0)
+        force = CubicSpline(t, rms * force / force.std())
+
+        def rhs(s, z):
+            x1, x2, v1, v2 = z
+            coupling = k2 * (x2 - x1) + c2 * (v2 - v1) + kc * (x2 - x1) ** 3
+            return [v1, v2, (force(s) - k1 * x1 - c1 * v1 + coupling) / m1, -coupling / m2]
+
+        X = solve_ivp(rhs, (t[0], t[-1]), [0.0] * 4, t_eval=t, method="DOP853", rtol=1e-10, atol=1e-13).y.T
+        noise = np.random.default_rng(seed + 100).standard_normal((t.size, 2))
+        noisy = X[:, :2] + 0.01 * X[:, :2].std(axis=0) * noise
+        return (Trajectory(t, X, force(t)[:, None], ("x1", "x2", "v1", "v2"), ("F",)),
+                Trajectory(t, noisy, force(t)[:, None], ("x1", "x2"), ("F",)))
+
+    _, train = record(12.0, 20.0, 1)
+    clean_held, _ = record(4.0, 10.0, 2)
+    x1, x2, v1, v2, F = symbols("x1 x2 v1 v2 F")
+    coupling = k2 * (x2 - x1) + c2 * (v2 - v1) + kc * (x2 - x1) ** 3
+    truth = OdeSystem((x1, x2, v1, v2), (F,), (v1, v2, (F - k1 * x1 - c1 * v1 + coupling) / m1, -coupling / m2),
+                      name="chain")
+    oe = identify(train, symsbl.paper([x1, x2, v1, v2], [F], 3), states=["x1", "x2", "v1", "v2"],
+                  kinematics={"x1": "v1", "x2": "v2"})
+    _check(oe, symsbl.compare_to_truth(oe, truth), symsbl.validate_model(oe, clean_held), heldout_tol=0.005)
+
+
 def test_van_der_pol_on_its_limit_cycle():
     """No input: the held-out record starts where training ended; validation fits its initial state."""
     x, y = symbols("x y")
