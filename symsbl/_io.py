@@ -89,7 +89,8 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
     for k, (lineno, row) in enumerate(rows):
         if len(row) != width:
             raise DataError(expected(f"{path}: line {lineno}", f"{width} fields, one per header column",
-                                     f"{len(row)} fields", "every row needs one value per column", raw=True))
+                                     f"{len(row)} field{'s' * (len(row) != 1)}", "every row needs one value per column",
+                                     raw=True))
         numbers = _number_cells(row, decimal_comma)
         if numbers is None:
             bad = next(j for j, c in enumerate(row) if _number_cells([c], decimal_comma) is None)

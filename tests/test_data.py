@@ -169,7 +169,7 @@ def test_read_errors(tmp_path):
         read_trajectory(bad, states=["x"])
     ragged = tmp_path / "ragged.csv"
     ragged.write_text("t,x\n0,1\n1\n")
-    with pytest.raises(DataError, match=r"ragged\.csv: line 3: expected 2 fields, one per header column, received 1 fields; every row needs"):
+    with pytest.raises(DataError, match=r"ragged\.csv: line 3: expected 2 fields, one per header column, received 1 field; every row needs"):
         read_trajectory(ragged, states=["x"])
     empty = tmp_path / "empty.csv"
     empty.write_text("")
