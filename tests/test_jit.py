@@ -60,8 +60,8 @@ def test_a_compiled_function_is_loaded_from_disk_in_a_later_run_without_compilin
     assert is_compiled and again is not compiled
     np.testing.assert_allclose(evaluate(again), reference, rtol=1e-14)
     # jit="auto" on a short record compiles nothing on a first request, but takes what an earlier run compiled
-    lazy, is_compiled = jit_module.jit_wrap(mapped(3), "f_chunk", "auto", SimulationError, only_cached=True,
-                                            key="another key")
+    _, is_compiled = jit_module.jit_wrap(mapped(3), "f_chunk", "auto", SimulationError, only_cached=True,
+                                         key="another key")
     assert is_compiled
 
 

@@ -59,8 +59,9 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     in the library on the rows ``Z`` of states and inputs (see :data:`LOOK_ALIKE`), at most
     :data:`PER_EQUATION`, and the runners-up (two at most) whatever the count: on a record where every
     term of an equation had two indistinguishable alternatives, the cap once left out the true term
-    ranked second by the equation error (x^3 of an asymmetric softening oscillator, 0.4 N of a 25 N spring force at
-    the peaks), and the output error made up for it with four wrong terms (178 nats below the truth).
+    ranked second by the equation error (x^3 of an asymmetric softening oscillator, 0.4 N of a 25 N
+    spring force at the peaks), and the output error made up for it with four wrong terms (178 nats
+    below the truth).
 
     Returns ``({state: [(expr, 0.0), ...]}, {state: {look-alike: term}})``: a look-alike is tried in its
     term's place, not beside it (see :func:`symsbl._refine.selection.select`).
@@ -73,11 +74,13 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
         if eq.fixed:
             continue
         alike = look_alikes(eq, library, model, Z, values, finite)
-        names = [n for t in eq.terms for n in t.alternatives] + list(alike) + list(eq.runners_up)
         present = set(eq.names)
-        kept = [n for n in dict.fromkeys(names) if n in library and n not in present][:PER_EQUATION]
-        # the runners-up always (two at most): the terms' alternatives can fill the places before them
-        kept += [n for n in eq.runners_up if n in library and n not in present and n not in kept]
+
+        def usable(names):
+            return [n for n in dict.fromkeys(names) if n in library and n not in present]
+
+        kept = usable([n for t in eq.terms for n in t.alternatives] + list(alike))[:PER_EQUATION]
+        kept += [n for n in usable(eq.runners_up) if n not in kept]
         if kept:
             out[eq.lhs] = [(library[n].expr, 0.0) for n in kept]
             twins[eq.lhs] = {n: alike[n] for n in kept if n in alike}
