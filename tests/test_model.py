@@ -111,6 +111,17 @@ def test_load_errors(tmp_path):
         IdentifiedModel.from_json(doc)
 
 
+def test_a_term_defined_for_positive_values_only_loads_with_its_rhs():
+    # a tank level's sqrt(h): NaN at negative probes on both sides is agreement, not a mismatch
+    def doc(rhs):
+        return {"states": ["h"], "inputs": ["q"], "equations": [{"lhs": "h", "rhs": rhs, "terms": [
+            {"term": "q", "coef": 2.0}, {"term": "sqrt(h)", "coef": -0.5}]}]}
+    model = IdentifiedModel.from_json(doc("-0.5*sqrt(h) + 2.0*q"))
+    assert model.equation("h").coef("sqrt(h)") == -0.5
+    with pytest.raises(DataError, match=r"equations\[0\]\.rhs: expected the sum of the equation's terms"):
+        IdentifiedModel.from_json(doc("-0.6*sqrt(h) + 2.0*q"))
+
+
 def test_heldout_validation_and_band(duffing):
     system, _, model = duffing
     heldout = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=3))
