@@ -15,7 +15,7 @@ import runpy
 import sys
 from pathlib import Path
 
-from ._errors import DataError, LibraryError, SymsblError, expected
+from ._errors import DataError, LibraryError, ParameterError, SymsblError, expected
 from ._outcome import EXIT_CODES, fail as _fail, run_command
 from ._refine.problem import INTERPOLATIONS
 
@@ -144,13 +144,22 @@ def _unmeasured_allowed(states, kinematics) -> tuple:
 
 def _cmd_identify(args) -> int:
     from ._identify import identify
+    from ._checks import integer
+    from ._weakform import WeakForm
     from ._symbolic import symbols
 
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.library if str(args.library).endswith(".py") else None])
     traj = _read(args, args.data, states, inputs, optional=_unmeasured_allowed(states, args.kinematics))
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
-    model = identify(traj, library, derivative=args.derivative, states=states, kinematics=args.kinematics or None,
+    derivative = args.derivative
+    integer("--overlap", args.overlap, low=1)
+    if args.overlap != 1:
+        if derivative != "weak":
+            raise ParameterError(expected("--overlap", "1 unless --derivative is weak",
+                                          f"--overlap {args.overlap} with --derivative {derivative}", raw=True))
+        derivative = WeakForm(overlap=args.overlap)
+    model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
                      refine=not args.no_refine,
                      refine_options={"interpolation": args.interpolation} if args.interpolation else None)
     how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
@@ -264,6 +273,9 @@ def _add_identify(sub, common) -> None:
     p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
     p.add_argument("--derivative", default="weak", choices=list(DIFFERENTIATORS),
                    help="how targets are built (default: weak)")
+    p.add_argument("--overlap", type=int, default=1, metavar="Q",
+                   help="weak form: test functions per window length (default: 1, windows apart; 2: half overlap, "
+                        "rows whitened for the noise correlation they share)")
     p.add_argument("--kinematics", default="", metavar="X:V[,...]",
                    help="position:velocity pairs with x' = v exactly (fixed, not identified); the velocity may be "
                         "absent from DATA (unmeasured), e.g. --kinematics y:v")

@@ -12,12 +12,14 @@ Strategies
 ``PointDifference``   the paper's forward difference, first order.
 ``CentralDifference`` second order.
 ``SavitzkyGolay``     local polynomial fit; order = ``polyorder``.
-``WeakForm``          integration against compactly supported bumps on non-overlapping windows.
+``WeakForm``          integration against compactly supported bumps on windows apart (or overlapping,
+                      with the rows whitened).
 
-The weak form uses windows that do not overlap, so the measurement noise entering one row is
-independent of every other row: the RVM's white-noise evidence stays valid without a correction.
-(Overlapping windows or filtering only the target would colour the noise, which is what makes a
-sparse learner admit spurious terms.)
+By default the weak form uses windows that do not overlap, so the measurement noise entering one row
+is independent of every other row: the RVM's white-noise evidence stays valid without a correction.
+(Overlapping windows or filtering only the target colour the noise, which is what makes a sparse
+learner admit spurious terms; ``WeakForm(overlap=2)`` whitens the rows of half-overlapping windows
+for the target's noise.)
 
 References
 ----------

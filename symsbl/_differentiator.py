@@ -36,12 +36,17 @@ class Stencil:
     Attributes
     ----------
     stride : int
-        Samples per row for window strategies (rows are windows of ``stride`` sample intervals
-        aligned with the start of the record, sharing end samples); 0 for pointwise strategies.
+        Sample intervals between the starts of consecutive rows for window strategies (windows
+        aligned with the start of the record); 0 for pointwise strategies.
     left, right : int
-        Samples a pointwise row reads either side of its own sample.
+        Pointwise strategies: samples a row reads either side of its own sample. Window
+        strategies: ``left`` is the number of earlier rows a row is combined with (the
+        whitening of overlapping windows; 0 when rows are independent), ``right`` is 0.
     min_samples : int
         Fewest samples that give a row.
+    span : int
+        Window strategies: sample intervals each window covers (0: ``stride``, windows that
+        only share their end samples; a multiple of ``stride`` when windows overlap).
 
     Examples
     --------
@@ -58,20 +63,39 @@ class Stencil:
     left: int
     right: int
     min_samples: int
+    span: int = 0
+
+    @property
+    def window(self) -> int:
+        """Sample intervals one window covers (window strategies)."""
+        return self.span or self.stride
+
+    @property
+    def min_block(self) -> int:
+        """Fewest samples a block inside a record needs: its earlier rows and one row of its own."""
+        return self.left * self.stride + self.window + 1 if self.stride else self.min_samples
 
     def rows(self, n: int, first: bool, last: bool) -> tuple[int, int]:
-        """Rows ``[r0, r1)`` a block of ``n`` samples produces (``first``/``last``: at the record's ends)."""
+        """Rows ``[r0, r1)`` a block of ``n`` samples produces (``first``/``last``: at the record's ends).
+
+        A block that does not start the record begins with the ``left`` rows its first row is
+        combined with; they were produced by the block before.
+        """
         if self.stride:
-            return 0, max((n - 1) // self.stride, 0)
+            windows = (n - 1 - self.window) // self.stride + 1 if n > self.window else 0
+            return (0 if first else self.left), windows
         return (0 if first else self.left), (n if last else n - self.right)
 
     def carry_from(self, row_stop: int) -> int:
         """First sample the next block must start from when this one stopped at ``row_stop``."""
-        return row_stop * self.stride if self.stride else row_stop - self.left
+        return (row_stop - self.left) * self.stride if self.stride else row_stop - self.left
 
     def sample_span(self, r0: int, r1: int) -> tuple[int, int]:
-        """Samples ``[s0, s1)`` whose dictionary rows reduce to rows ``[r0, r1)``."""
-        return (r0 * self.stride, r1 * self.stride + 1) if self.stride else (r0, r1)
+        """Samples ``[s0, s1)`` whose dictionary rows reduce to rows ``[r0, r1)`` (window strategies:
+        with the ``left`` earlier rows they are combined with, from the record's start at most)."""
+        if self.stride:
+            return max(r0 - self.left, 0) * self.stride, (r1 - 1) * self.stride + self.window + 1
+        return r0, r1
 
 
 class Differentiator(abc.ABC):
@@ -83,6 +107,7 @@ class Differentiator(abc.ABC):
     - ``targets(t, X)`` returns the derivative estimate for each row, ``(n_rows, n_states)``;
     - ``reduce(D)`` turns per-sample dictionary rows ``(n_samples, n_terms)`` into the rows that
       pair with those targets (identity for pointwise strategies, window integrals for the weak form);
+      given the samples of ``sample_span(r0, r1)``, its last ``r1 - r0`` rows are rows ``r0:r1``;
     - ``n_rows(n)`` and ``sample_span(r0, r1)`` say how rows map to samples;
     - ``stencil`` declares the samples each row reads, so a long record can be cut into blocks
       whose rows equal those of the whole record;

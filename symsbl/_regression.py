@@ -147,7 +147,7 @@ def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differenti
         for a in range(r0, r1, step):
             b = min(a + step, r1)
             s0, s1 = stencil.sample_span(a, b)
-            yield diff.reduce(evaluator.evaluate(Z[s0:s1]))[: b - a], Y[a:b]
+            yield diff.reduce(evaluator.evaluate(Z[s0:s1]))[-(b - a):], Y[a:b]
             if bar is not None:
                 bar.update(b - a)
 
@@ -181,7 +181,7 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
     >>> problem = symsbl.regression_stats(train, library)
     >>> problem.derivative, problem.stats.n_samples, problem.stats.n_terms
-    (WeakForm(window=44, power=4), 186, 11)
+    (WeakForm(window=44, power=4, overlap=1), 186, 11)
     """
     trajectories = as_trajectories(data)
     if not isinstance(library, Library):

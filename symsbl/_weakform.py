@@ -1,30 +1,68 @@
 """The weak (integral) form: integrate against compactly supported bumps instead of differentiating.
 
-``int phi_j x' dt = -int phi_j' x dt``: the target needs no derivative of the noisy state. Windows do
-not overlap, so the measurement noise entering one row is independent of every other row and the
-RVM's white-noise evidence stays valid without a correction.
+``int phi_j x' dt = -int phi_j' x dt``: the target needs no derivative of the noisy state. By
+default windows do not overlap, so the measurement noise entering one row is independent of every
+other row and the RVM's white-noise evidence stays valid without a correction. With ``overlap=q``
+there are ``q`` test functions per window length, and the rows are whitened by the banded
+covariance that the measurement noise of the target gives them (generalised least squares), so the
+rows are again independent with equal variance and the evidence stays valid for that noise.
 
 References
 ----------
 D.A. Messenger, D.M. Bortz (2021), Weak SINDy, Multiscale Model. Simul. 19(3).
+D.M. Bortz, D.A. Messenger, V. Dukic (2023), Direct estimation of parameters in ODE models using
+WENDy, Bull. Math. Biol. 85(110).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
+from scipy.signal import lfilter
 
 from ._differentiator import Differentiator, Stencil, check_samples as _check
+from ._checks import integer
 from ._errors import ParameterError, expected
 
 __all__ = ["WeakForm"]
 
 
+#: Whitening filters are cut where their taps fall below this share of the largest.
+WHITENING_TOLERANCE = 1e-12
+
+
+@lru_cache(maxsize=32)
+def _whitening(w_dphi: tuple, stride: int, overlap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the inverse Cholesky factor of the rows' noise correlation: ``(start, taps)``.
+
+    Row ``j`` of the target is ``-sum_k w_k x_{j stride + k}``; white noise in ``x`` gives rows
+    correlated over ``overlap - 1`` neighbours, a banded Toeplitz correlation ``C`` (unit
+    diagonal). With ``C = L L^T``, ``L^{-1}`` whitens the rows: ``start`` holds its first rows
+    exactly (a record's start), ``taps`` the stationary filter of later rows (current row last),
+    cut where the taps fall below :data:`WHITENING_TOLERANCE`.
+    """
+    w = np.asarray(w_dphi)
+    c = np.array([w[: len(w) - m * stride] @ w[m * stride :] for m in range(overlap)])
+    c = c / c[0]
+    size = 64
+    while True:
+        lags = np.abs(np.subtract.outer(np.arange(size), np.arange(size)))
+        C = np.where(lags < overlap, c[np.minimum(lags, overlap - 1)], 0.0)
+        inv = np.linalg.inv(np.linalg.cholesky(C))
+        last = inv[-1]
+        keep = np.nonzero(np.abs(last) > WHITENING_TOLERANCE * np.abs(last).max())[0]
+        n_taps = size - keep[0]
+        if n_taps < size // 2 or size >= 4096:
+            return inv[: n_taps - 1, : n_taps - 1], last[size - n_taps :]
+        size *= 2
+
+
 @dataclass(frozen=True)
 class WeakForm(Differentiator):
-    """Weak (integral) formulation on non-overlapping windows.
+    """Weak (integral) formulation on windows that do not overlap (default) or overlap, whitened.
 
     Row j uses the test function ``phi_j(t) = (1 - s^2)^p`` with ``s`` mapping the j-th window of
     ``window`` sample intervals onto [-1, 1]. Integrating by parts (``phi_j`` vanishes at both
@@ -34,8 +72,9 @@ class WeakForm(Differentiator):
 
     so the target needs no derivative of the noisy state. Integrals use the trapezoid rule on the
     samples; since ``phi_j`` and ``phi_j'`` vanish at the window ends, the rule is accurate to
-    order ``p`` (``p + 1`` for odd ``p``) in the sample interval (Euler-Maclaurin). Adjacent windows share only their end sample,
-    where both test functions are zero, so rows carry independent noise.
+    order ``p`` (``p + 1`` for odd ``p``) in the sample interval (Euler-Maclaurin). With
+    ``overlap=1`` adjacent windows share only their end sample, where both test functions are
+    zero, so rows carry independent noise.
 
     Parameters
     ----------
@@ -44,10 +83,20 @@ class WeakForm(Differentiator):
         (default): chosen from the data's bandwidth by :meth:`resolve`.
     power : int
         Exponent ``p >= 2`` of the bump; larger is smoother.
+    overlap : int
+        Test functions per window length: windows start every ``window / overlap`` sample
+        intervals (``window`` must be a multiple; :meth:`resolve` rounds it). 1 (default): no
+        overlap. Above 1 the rows are whitened by the correlation that white measurement noise
+        in the target gives them (generalised least squares), so they stay independent.
 
     Notes
     -----
     Both sides are divided by ``int phi_j dt`` so rows keep the units of x' and D(x).
+
+    The whitening models the noise of the target only. The noise that the dictionary's columns
+    carry (errors in variables) and the quadrature error are correlated between overlapping rows
+    too and are not whitened; they are small against the target's noise when the window holds
+    many samples, and grow with the overlap.
 
     Examples
     --------
@@ -59,7 +108,7 @@ class WeakForm(Differentiator):
     >>> x = np.sin(2 * np.pi * t)[:, None]
     >>> weak = symsbl.WeakForm().resolve(t, x)
     >>> weak
-    WeakForm(window=10, power=4)
+    WeakForm(window=10, power=4, overlap=1)
     >>> weak.targets(t, x).shape        # 1000 sample intervals / 10 per window
     (100, 1)
 
@@ -73,15 +122,28 @@ class WeakForm(Differentiator):
 
     window: int | None = None
     power: int = 4
+    overlap: int = 1
     name: ClassVar[str] = "weak"
 
+    def __post_init__(self):
+        integer("WeakForm.overlap", self.overlap, low=1, error=ParameterError)
+        if self.window is not None and self.window % self.overlap:
+            raise ParameterError(expected("WeakForm.window", f"a multiple of overlap={self.overlap}", self.window))
+
     @property
-    def stencil(self) -> Stencil:
-        """Windows of ``window`` sample intervals aligned with the record's start."""
+    def stride(self) -> int:
+        """Sample intervals between the starts of consecutive windows."""
         if self.window is None:
             raise ParameterError(expected("WeakForm.window", "a window resolved from data (call resolve(t, X))",
                                           None))
-        return Stencil(stride=self.window, left=0, right=0, min_samples=self.window + 1)
+        return self.window // self.overlap
+
+    @property
+    def stencil(self) -> Stencil:
+        """Windows of ``window`` sample intervals every ``stride``, aligned with the record's start;
+        overlapping rows are combined with the earlier rows their whitening reads."""
+        left = len(self._whitening()[1]) - 1 if self.overlap > 1 else 0
+        return Stencil(stride=self.stride, left=left, right=0, min_samples=self.window + 1, span=self.window)
 
     #: Fraction of the power of each state below the bandwidth used by the automatic window.
     POWER_QUANTILE: ClassVar[float] = 0.999
@@ -130,7 +192,9 @@ class WeakForm(Differentiator):
             f_hi = max(f_hi, freq[min(np.searchsorted(cum, self.POWER_QUANTILE), len(freq) - 1)])
         window = int(round(self.RESPONSE_FACTOR / f_hi / h)) if f_hi > 0 else 4
         most = (n - 1) // max(2 * n_terms, 1)
-        return WeakForm(window=max(4, min(window, most)), power=self.power)
+        window = max(4, min(window, most))
+        q = self.overlap
+        return WeakForm(window=max(q * round(window / q), 4 if q == 1 else 2 * q), power=self.power, overlap=q)
 
     @property
     def order(self) -> int:
@@ -158,34 +222,49 @@ class WeakForm(Differentiator):
 
     def n_rows(self, n_samples: int) -> int:
         """Number of windows that fit in ``n_samples`` samples."""
-        return max((n_samples - 1) // self.window, 0)
+        return self.stencil.rows(n_samples, True, True)[1]
 
     def _windows(self, A: np.ndarray) -> np.ndarray:
-        """View of ``A`` as ``(n_rows, window + 1, n_cols)`` windows sharing end samples."""
+        """View of ``A`` as ``(n_rows, window + 1, n_cols)`` windows starting every ``stride`` samples."""
         A = np.ascontiguousarray(A, dtype=float)
         if A.ndim == 1:
             A = A[:, None]
         n = self.n_rows(len(A))
-        L = self.window
         return np.lib.stride_tricks.as_strided(
             A,
-            shape=(n, L + 1, A.shape[1]),
-            strides=(L * A.strides[0], A.strides[0], A.strides[1]),
+            shape=(n, self.window + 1, A.shape[1]),
+            strides=(self.stride * A.strides[0], A.strides[0], A.strides[1]),
             writeable=False,
         )
 
+    def _whitening(self) -> tuple[np.ndarray, np.ndarray]:
+        _, w_dphi = self._weights(1.0)
+        return _whitening(tuple(w_dphi), self.stride, self.overlap)
+
+    def _whiten(self, R: np.ndarray) -> np.ndarray:
+        """Rows of overlapping windows made independent (rows from a record's start; see :func:`_whitening`)."""
+        if self.overlap == 1 or not len(R):
+            return R
+        start, taps = self._whitening()
+        out = lfilter(taps[::-1], [1.0], R, axis=0)
+        head = min(len(start), len(R))
+        out[:head] = start[:head, :head] @ R[:head]
+        return out
+
     def targets(self, t: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """Weak derivative ``-int phi_j' x dt / int phi_j dt``, shape ``(n_rows, n_states)``."""
+        """Weak derivative ``-int phi_j' x dt / int phi_j dt``, shape ``(n_rows, n_states)``
+        (whitened when windows overlap)."""
         self._weights(1.0)  # validates the settings first
         X, h = _check(t, X, self.window + 1)
         _, dphi = self._weights(h)
-        return -np.einsum("k,jkc->jc", dphi, self._windows(X))
+        return self._whiten(-np.einsum("k,jkc->jc", dphi, self._windows(X)))
 
     def reduce(self, D: np.ndarray) -> np.ndarray:
-        """Window averages ``int phi_j D dt / int phi_j dt``, shape ``(n_rows, n_cols)``.
+        """Window averages ``int phi_j D dt / int phi_j dt``, shape ``(n_rows, n_cols)``
+        (whitened like the targets when windows overlap).
 
         The sample interval only scales the weights, which are normalised, so ``reduce`` needs
         no time vector.
         """
         phi, _ = self._weights(1.0)
-        return np.einsum("k,jkc->jc", phi, self._windows(D))
+        return self._whiten(np.einsum("k,jkc->jc", phi, self._windows(D)))

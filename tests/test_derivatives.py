@@ -91,6 +91,44 @@ def test_weak_form_rows_have_independent_noise():
     assert abs(rho) < 4 / np.sqrt(len(r))
 
 
+@pytest.mark.parametrize("overlap", [2, 3])
+def test_overlapping_windows_give_the_generalised_least_squares_statistics(overlap):
+    # Brute force: the unwhitened rows as dense operators on the samples, the rows' noise covariance
+    # W W^T of white noise in x, and D^T C^-1 D, D^T C^-1 y with that covariance (scaled to a unit
+    # diagonal) against the whitened rows' sums of products.
+    rng = np.random.default_rng(3)
+    n, window = 400, 12
+    t = np.arange(n) * 1e-3
+    x = np.cumsum(rng.standard_normal(n))[:, None] * 1e-2
+    D = np.column_stack([x[:, 0], x[:, 0] ** 3, np.sin(40 * t)])
+    weak = WeakForm(window=window, overlap=overlap)
+    phi, dphi = weak._weights(t[1] - t[0])
+    rows = weak.n_rows(n)
+    Wt, Wd = np.zeros((rows, n)), np.zeros((rows, n))
+    for j in range(rows):
+        a = j * weak.stride
+        Wt[j, a : a + window + 1], Wd[j, a : a + window + 1] = -dphi, phi
+    C = Wt @ Wt.T
+    C /= C[0, 0]
+    y_ref, D_ref = Wt @ x, Wd @ D
+    y, R = weak.targets(t, x), weak.reduce(D)
+    np.testing.assert_allclose(R.T @ R, D_ref.T @ np.linalg.solve(C, D_ref), rtol=1e-9)
+    np.testing.assert_allclose(R.T @ y, D_ref.T @ np.linalg.solve(C, y_ref), rtol=1e-9)
+    np.testing.assert_allclose(y.T @ y, y_ref.T @ np.linalg.solve(C, y_ref), rtol=1e-9)
+
+
+def test_whitened_rows_of_white_noise_are_white():
+    rng = np.random.default_rng(4)
+    t = np.arange(200_001) * 1e-3
+    weak = WeakForm(window=20, overlap=2)
+    e = rng.standard_normal((len(t), 1))
+    r = weak.targets(t, e)[:, 0]
+    raw = -np.einsum("k,jkc->jc", weak._weights(1e-3)[1], weak._windows(e))[:, 0]
+    assert np.corrcoef(raw[:-1], raw[1:])[0, 1] < -0.2  # half-overlapping rows share noise ...
+    for lag in (1, 2, 3):  # ... which the whitening removes
+        assert abs(np.corrcoef(r[:-lag], r[lag:])[0, 1]) < 4 / np.sqrt(len(r))
+
+
 def test_registry_and_errors():
     assert isinstance(get_differentiator("central"), CentralDifference)
     with pytest.raises(ValueError, match=exactly("derivative: expected one of ['weak', 'central', 'point', 'savgol'], received 'spline'")):
@@ -102,7 +140,8 @@ def test_registry_and_errors():
         SavitzkyGolay(window=8).targets(np.arange(10.0), np.zeros(10))
 
 
-@pytest.mark.parametrize("strategy", [PointDifference(), CentralDifference(), WeakForm(window=16)])
+@pytest.mark.parametrize("strategy", [PointDifference(), CentralDifference(), WeakForm(window=16),
+                                      WeakForm(window=16, overlap=2)])
 def test_reduce_in_blocks_equals_reduce_at_once(strategy):
     rng = np.random.default_rng(2)
     D = rng.standard_normal((1000, 3))
@@ -112,7 +151,7 @@ def test_reduce_in_blocks_equals_reduce_at_once(strategy):
     for r0 in range(0, n, 7):
         r1 = min(r0 + 7, n)
         s0, s1 = strategy.sample_span(r0, r1)
-        blocks.append(strategy.reduce(D[s0:s1])[: r1 - r0])
+        blocks.append(strategy.reduce(D[s0:s1])[-(r1 - r0):])
     np.testing.assert_array_equal(np.vstack(blocks), whole[:n])
 
 

@@ -50,7 +50,8 @@ def _assert_same(a, b):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-13 * np.max(np.abs(y)), err_msg=name)
 
 
-@pytest.mark.parametrize("strategy", [WeakForm(window=29), PointDifference(), SavitzkyGolay(window=9, polyorder=3)], ids=repr)
+@pytest.mark.parametrize("strategy", [WeakForm(window=29), WeakForm(window=30, overlap=2), PointDifference(),
+                                      SavitzkyGolay(window=9, polyorder=3)], ids=repr)
 def test_cluster_statistics_equal_the_single_process_ones(client, record, strategy):
     ref = stream_stats(record, LIB, derivative=strategy)
     got = dask_stats(_array(record), LIB, derivative=strategy, block_samples=700, **NAMES)

@@ -27,7 +27,8 @@ from symsbl import (
 )
 
 LIB = paper(symbols("x1 x2"), symbols("F"), degree=3)
-STRATEGIES = [WeakForm(window=37), WeakForm(window=4, power=2), PointDifference(), CentralDifference(),
+STRATEGIES = [WeakForm(window=37), WeakForm(window=4, power=2), WeakForm(window=24, overlap=2),
+              WeakForm(window=12, overlap=3), PointDifference(), CentralDifference(),
               SavitzkyGolay(window=9, polyorder=3)]
 
 

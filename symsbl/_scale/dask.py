@@ -126,11 +126,15 @@ def _plan(n: int, stencil, block_samples: int) -> list[_Slice]:
     """Overlapping slices of an ``n``-sample record whose rows tile the record's rows once."""
     halo = stencil
     if halo.stride:
-        L = halo.stride
-        rows = (n - 1) // L
-        per = max(1, block_samples // L)
+        S = halo.stride
+        rows = halo.rows(n, True, True)[1]
+        per = max(1, block_samples // S)
         cuts = [k * per for k in range(max(1, rows // per))] + [rows]
-        return [_Slice(a * L, b * L + 1, 0, b - a) for a, b in zip(cuts[:-1], cuts[1:])]
+        out = []
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            s0, s1 = halo.sample_span(a, b)
+            out.append(_Slice(s0, s1, a - s0 // S, b - s0 // S))
+        return out
     per = max(block_samples, halo.min_samples)
     cuts = [k * per for k in range(max(1, n // per))] + [n]
     out = []

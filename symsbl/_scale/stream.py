@@ -187,14 +187,14 @@ def _record_stats(reader, library, diff, evaluator, chunk_size, block_samples, p
         lo = XU.min(axis=0) if lo is None else np.minimum(lo, XU.min(axis=0))
         hi = XU.max(axis=0) if hi is None else np.maximum(hi, XU.max(axis=0))
         n = len(X)
-        if n < stencil.min_samples and not last:
+        if n < stencil.min_block and not last:
             carry = (X, U)
             continue
-        if n < stencil.min_samples:
+        r0, r1 = stencil.rows(n, first, last)
+        if r1 <= r0 and last:
             if first:  # the whole record is too short: the strategy's own error says so
                 diff.targets(np.arange(n) * (reader.h or 1.0), X)
             break  # an incomplete last window, dropped as in the in-memory path
-        r0, r1 = stencil.rows(n, first, last)
         first = False
         cut = stencil.carry_from(r1)
         carry = (X[cut:], U[cut:])
