@@ -167,11 +167,11 @@ def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | Non
         if sol is None:  # a candidate that makes the model run away: keep the fitted structure
             return first
     cost = cost_of(sol)
-    removed = _removals(engine, sol, alpha, cost, twins or {})
+    removed, post = _removals(engine, sol, alpha, cost, twins or {})
     chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
     best = first
     if set(chosen) != set(engine.base):
-        refit = _reduced(engine, sol, alpha, removed)
+        refit = _reduced(engine, sol, post, alpha, removed)
         if refit is not None and objective(refit, cost) > objective(first, cost):
             best = refit
     if sol is not first and objective(sol, cost) > objective(best, cost) + EQUIVALENCE_NATS:
@@ -181,20 +181,20 @@ def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | Non
     return best
 
 
-def _removals(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict) -> list[int]:
-    """Positions in ``sol.active`` that model reduction removes (then one of each look-alike pair)."""
+def _removals(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict):
+    """Positions in ``sol.active`` that model reduction removes (then one of each look-alike pair), and the
+    posterior under the structure's priors they were scored on."""
     keys = [engine.keys[k] for k in sol.active]
     # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
     # near-equivalent terms unevenly and would decide between them by that split
     post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
     removed = backward(post, alpha[sol.active], cost, keys)
-    return _one_of_each_pair(engine, sol.active, post, alpha[sol.active], removed, twins, keys)
+    return _one_of_each_pair(engine, sol.active, post, alpha[sol.active], removed, twins, keys), post
 
 
-def _reduced(engine: Engine, sol, alpha: np.ndarray, removed: list):
-    """The refit of ``sol`` without the positions ``removed`` of its active set, started at the reduced
-    posterior's mean (``None`` if it runs away)."""
-    post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
+def _reduced(engine: Engine, sol, post, alpha: np.ndarray, removed: list):
+    """The refit of ``sol`` without the positions ``removed`` of its active set, started at the mean of the
+    reduced posterior ``post`` (``None`` if it runs away)."""
     chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
     _, mean, _ = reduce_model(post, alpha[sol.active], removed) if removed else (0, post.mean, 0)
     start = np.zeros_like(sol.theta)
@@ -221,12 +221,12 @@ def _prune(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, tri
     """
     current, refits = sol, 0
     while refits < PRUNE_REFITS:
-        removed = _removals(engine, current, alpha, cost, twins)
+        removed, post = _removals(engine, current, alpha, cost, twins)
         batch, accepted = len(removed), False
         if current is sol and tried is not None and list(tried) == list(removed):
             batch //= 2
         while batch >= 1 and refits < PRUNE_REFITS:
-            refit = _reduced(engine, current, alpha, removed[:batch])
+            refit = _reduced(engine, current, post, alpha, removed[:batch])
             refits += 1
             if refit is not None and objective(refit, cost) > objective(current, cost):
                 current, accepted = refit, True
