@@ -185,6 +185,21 @@ def test_model_reduction_scores_a_removal_as_a_refit_does():
     assert abs((refit.posterior.log_evidence - first.posterior.log_evidence) - predicted) < 0.5
 
 
+def test_a_curvature_lost_to_round_off_is_a_simulation_error_not_an_overflow():
+    """A fit whose coefficient the initial state explains (a degenerate model: seen from a 15-term kinematic
+    equation at 400 Hz) can leave a Schur complement with a negative diagonal by round-off; normalising by it
+    overflowed inside numpy. It is now a SimulationError, which ``identify`` turns into a RefineWarning with the
+    equation-error model kept."""
+    from symsbl._refine.laplace import posterior
+
+    H = np.array([[[1.0, 2.0], [2.0, 1.0]]])  # one segment: one coefficient, one initial state
+    with pytest.raises(symsbl.SimulationError, match="curvature <= 0"):
+        posterior(H, np.array([0.5]), np.array([1e-6]), 1.0, np.array([100]), np.array([1.0]))
+    good = posterior(np.array([[[4.0, 1.0], [1.0, 1.0]]]), np.array([0.5]), np.array([1e-6]), 1.0, np.array([100]),
+                     np.array([1.0]))
+    assert good.covariance[0, 0] == pytest.approx(1.0 / (4.0 - 1.0 + 1e-6))  # the Schur complement's inverse
+
+
 def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     """A pass of a large structure runs in calls of fewer samples (CasADi builds long calls of a large carried
     state slowly); the blocks ``J^T W J``, ``J^T W r`` and the squared residuals do not depend on the call length

@@ -111,7 +111,14 @@ def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, 
     S_data, log_det_x0, n_x0 = schur(H, np.zeros_like(alpha))  # the prior enters only the diagonal
     S_data = 0.5 * (S_data + S_data.T)
     S = S_data + np.diag(alpha)
-    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    curvature = np.diag(S)
+    if not np.all(curvature > 0):  # S_data is positive semi-definite: only round-off makes a diagonal <= 0
+        raise SimulationError(expected(
+            "output-error refinement", "a positive curvature of the fit in every coefficient",
+            f"{int(np.sum(~(curvature > 0)))} of {curvature.size} coefficients with curvature <= 0 once the initial "
+            "states are integrated out (round-off: the record does not separate them from the initial states)",
+            "the equation-error model stands", raw=True))
+    d = np.sqrt(curvature)
     ev, V = np.linalg.eigh(S / np.outer(d, d))
     ev = np.maximum(ev, 1e-14 * max(float(ev.max()), 1e-300))  # round-off, not information
     cov = (V / ev) @ V.T / np.outer(d, d)
