@@ -222,8 +222,11 @@ def _cmd_discrepancy(args) -> int:
             raise DataError(expected(name, "a value (or --list-effects alone)", "none", raw=True))
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.held_out, args.effects])
-    traj = _read(args, args.data, states, inputs)
-    heldout = _read(args, args.held_out, states, inputs) if args.held_out else None
+    from ._kinematics import parse_kinematics
+
+    velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
+    traj = _read(args, args.data, states, inputs, optional=velocities)  # displacement only: velocities estimated
+    heldout = _read(args, args.held_out, states, inputs, optional=velocities) if args.held_out else None
     report = discrepancy(traj, args.base, heldout=heldout, error=args.error, effects=effects,
                          kinematics=args.kinematics or None, evidence=args.evidence,
                          search_library=not args.no_library)
@@ -313,7 +316,8 @@ def _add_discrepancy(sub, common) -> None:
     p.add_argument("--base", help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
     p.add_argument("--kinematics", default="", metavar="X:V[,...]",
                    help="position:velocity pairs to search, e.g. x1:v1,x2:v2 (default: every base equation 'x: v'); "
-                        "effects between coupled pairs are searched too")
+                        "effects between coupled pairs are searched too; a velocity absent from DATA is unmeasured "
+                        "(output-error evidence fits the positions alone)")
     p.add_argument("--effects", metavar="FILE", help="user effects, one 'name: expression' line each in x and v "
                    "(displacement, velocity of a pair), optionally '; dissipative'")
     p.add_argument("--list-effects", action="store_true", help="print the catalogue (with --effects) and exit")

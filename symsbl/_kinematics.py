@@ -18,7 +18,7 @@ from ._errors import DataError, expected
 from ._trajectory import Trajectory
 from ._weakform import WeakForm
 
-__all__ = ["parse_kinematics", "estimate_velocity", "latent_states", "complete_states"]
+__all__ = ["parse_kinematics", "estimate_velocity", "latent_states", "complete_states", "with_velocities"]
 
 
 def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]:
@@ -52,6 +52,25 @@ def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]
             raise DataError(expected("kinematics", "each state in at most one pair", f"{x}:{v}", raw=True))
         used |= {x, v}
     return tuple(pairs)
+
+
+def with_velocities(names: Sequence[str], spec) -> tuple[str, ...]:
+    """``names`` with the velocity of each declared pair that they lack placed after its position: the states of
+    a model whose records hold only the positions.
+
+    Examples
+    --------
+    >>> with_velocities(["y1", "y2", "z"], "y1:v1,y2:v2")
+    ('y1', 'v1', 'y2', 'v2', 'z')
+    """
+    if isinstance(spec, str):
+        pairs = [tuple(n.strip() for n in part.partition(":")[::2]) for part in spec.split(",") if ":" in part]
+    elif isinstance(spec, Mapping):
+        pairs = list(spec.items())
+    else:
+        return tuple(names)
+    extra = {x: v for x, v in pairs if x in names and v not in names}
+    return tuple(n for name in names for n in ((name, extra[name]) if name in extra else (name,)))
 
 
 def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:

@@ -415,6 +415,30 @@ def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path
     assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
 
 
+def test_a_displacement_only_record_names_the_hidden_effect_through_the_command_line(tmp_path, capsys):
+    """Only x1 recorded (the velocity of x1:x2 absent from both files): the velocity is estimated for the
+    start, the output error fits x1 alone, and the hidden cubic spring is named with its coefficient; the
+    final model re-simulates the noise-free held-out record, velocity included, at the noise floor."""
+    force, true, held_input = HIDDEN["cubic_stiffness"]
+    system = oscillator(force)
+    train, held = records(system, held_input, seed=3)
+    clean_held = simulate(system, time_grid(1.5, FS), inputs=held_input, method="rk4")
+    write_trajectory(train.with_states(["x1"]), tmp_path / "train.csv")
+    write_trajectory(held.with_states(["x1"]), tmp_path / "held.csv")
+    out = tmp_path / "report.json"
+    code = main(["discrepancy", str(tmp_path / "train.csv"), "--states", "x1,x2", "--inputs", "F", "--base", BASE,
+                 "--kinematics", "x1:x2", "--held-out", str(tmp_path / "held.csv"), "--json", str(out)])
+    assert code == 0, capsys.readouterr()
+    doc = json.loads(out.read_text())
+    assert [a["effect"] for a in doc["added"]] == ["cubic_stiffness"], doc["verdict"]
+    assert doc["added"][0]["coef"] == pytest.approx(true, rel=0.05)
+    final = symsbl.IdentifiedModel.from_json(doc["final"])
+    assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
+    with pytest.raises(DataError, match="evidence: expected 'output-error' when a velocity is not measured"):
+        discrepancy(train.with_states(["x1"]), BASE, heldout=held.with_states(["x1"]), kinematics="x1:x2",
+                    evidence="equation-error", error="equation")
+
+
 def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
     from scipy.signal import butter, sosfiltfilt
 

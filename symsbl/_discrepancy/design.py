@@ -71,12 +71,14 @@ class Design:
                                metadata={"derivative": type(self.derivative).__name__})
 
 
-def heldout_error(model: IdentifiedModel, traj: Trajectory, measure: str, design: Design, velocity: str) -> float:
-    """Held-out error of ``model`` on ``traj``: mean simulation NRMSE of the states, or the NRMSE of the
-    velocity equation on the record's rows (``measure="equation"``)."""
+def heldout_error(model: IdentifiedModel, traj: Trajectory, measure: str, design: Design, velocity: str,
+                  measured=None) -> float:
+    """Held-out error of ``model`` on ``traj``: mean simulation NRMSE of the ``measured`` states (default all),
+    or the NRMSE of the velocity equation on the record's rows (``measure="equation"``)."""
     if measure == "simulation":
         result = validate_model(model, traj, method="rk4")
-        return math.inf if result.status != "ok" else float(np.mean(list(result.nrmse.values())))
+        keep = result.nrmse if measured is None else {k: v for k, v in result.nrmse.items() if k in measured}
+        return math.inf if result.status != "ok" else float(np.mean(list(keep.values())))
     stats = design.stats(traj)
     k = list(traj.state_names).index(velocity)
     eq = model.equation(velocity)

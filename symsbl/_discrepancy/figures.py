@@ -32,8 +32,9 @@ def _equation_residual(model: IdentifiedModel, data: Trajectory, velocity: str) 
     return np.gradient(data.column(velocity), data.t) - rhs
 
 
-def _before_after(ax, report, heldout: Trajectory | None, velocity: str) -> None:
-    """Panel (a): the held-out record under the initial and the final model."""
+def _before_after(ax, report, heldout: Trajectory | None, velocity: str, displacement: str | None = None) -> None:
+    """Panel (a): the held-out record under the initial and the final model (the velocity, or the displacement
+    when the velocity was not measured)."""
     if heldout is None:
         ax.set_axis_off()
         ax.text(0.5, 0.5, "pass heldout= (the held-out Trajectory)\nto draw the response before and after",
@@ -57,7 +58,7 @@ def _before_after(ax, report, heldout: Trajectory | None, velocity: str) -> None
         ax.set_ylabel(f"{velocity}' measured - model")
         ax.set_title(f"(a) held-out residual of {velocity}' (closed loop: equation error, not simulation)")
     else:
-        state = velocity
+        state = velocity if velocity in heldout.state_names or displacement is None else displacement
         ax.plot(t, heldout.column(state)[keep], color="0.55", lw=3.0, label="measured")
         for model, colour, ls, label in ((report.initial, BEFORE, "-", "before"), (report.final, AFTER, "--", "after")):
             v = validate_model(model, heldout, method="rk4")
@@ -160,7 +161,7 @@ def discrepancy_figure(report, heldout: Trajectory | None = None):
     first = report.steps[0]
     fig = new_figure(figsize=(17, 4.6), layout="constrained")
     ax_a, ax_b, ax_c = fig.subplots(1, 3, width_ratios=[1.5, 1.1, 1.1])
-    _before_after(ax_a, report, heldout, velocity)
+    _before_after(ax_a, report, heldout, velocity, displacement)
     _residual_map(fig, ax_b, first, displacement, velocity)
     _evidence_bars(ax_c, first)
     fig.suptitle("Discrepancy: " + report.verdict, fontsize="medium")

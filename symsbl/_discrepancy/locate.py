@@ -14,9 +14,10 @@ from .results import Disagreement
 __all__ = ["locate", "effective_fraction"]
 
 
-def locate(model, train, heldout, design, displacement, velocity, measure) -> Disagreement:
+def locate(model, train, heldout, design, displacement, velocity, measure, measured=None) -> Disagreement:
     """Where ``model`` disagrees with the records: residual regions, the jump across v = 0, the phase-plane
-    map and the held-out error over time."""
+    map and the held-out error over time (of the ``measured`` states, default all; an unmeasured velocity's
+    column holds an estimate, which the equation residual uses)."""
     diff = design.derivative
     eq = model.equation(velocity)
     lib = Library([t.expr for t in eq.terms], design.variables)
@@ -47,11 +48,12 @@ def locate(model, train, heldout, design, displacement, velocity, measure) -> Di
     # time profile of the held-out error
     if measure == "simulation":
         sim = validate_model(model, heldout, method="rk4").simulated
-        states = [n for n in model.state_names]
+        states = [n for n in model.state_names if measured is None or n in measured]
         meas = np.column_stack([heldout.column(n) for n in states])[: sim.n_samples]
         segments = np.array_split(np.arange(sim.n_samples), 10)
         scale = np.std(meas, axis=0)
-        err = [float(np.mean(np.sqrt(np.mean((meas[s] - sim.states[s]) ** 2, axis=0)) / scale)) for s in segments]
+        simulated = sim.states[:, [model.state_names.index(n) for n in states]]
+        err = [float(np.mean(np.sqrt(np.mean((meas[s] - simulated[s]) ** 2, axis=0)) / scale)) for s in segments]
         mids = [float(heldout.t[s].mean()) for s in segments]
     else:
         mids, err = [], []

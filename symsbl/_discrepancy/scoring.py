@@ -193,7 +193,8 @@ class Scorer:
                     clean = simulate(system, r.t, inputs=U, x0=x0, method="rk4", on_divergence="raise")
                 except SimulationError:
                     return out
-                cols = [clean.column(n) + rng.standard_normal(r.n_samples) * std[n] for n in r.state_names]
+                cols = [clean.column(n) + rng.standard_normal(r.n_samples) * std.get(n, 0.0)  # unmeasured: unused
+                        for n in r.state_names]
                 fakes.append(Trajectory(r.t, np.column_stack(cols), r.inputs, r.state_names, r.input_names))
             try:
                 fake = Scorer(self.model, fakes, self.measured, self.settings)

@@ -39,7 +39,7 @@ import numpy as np
 from .._checks import choice, integer
 from .._derivatives import get_differentiator
 from .._errors import DataError, LibraryError, expected
-from .._kinematics import parse_kinematics
+from .._kinematics import complete_states, parse_kinematics, with_velocities
 from .._model import Equation
 from .._refine.engine import Settings
 from .._symbolic import casadi_to_sympy
@@ -126,7 +126,9 @@ def discrepancy(
     kinematics : mapping or str, optional
         The position-velocity pairs to search, ``{"x1": "x2", "x3": "x4"}`` or ``"x1:x2,x3:x4"``
         (default: every base equation ``x: v``); effects of the relative motion of two coupled pairs
-        are candidates too.
+        are candidates too. A velocity of a pair that ``data`` and ``heldout`` do not hold is unmeasured
+        (displacement only): it is estimated from its position for the equation-error start
+        (:func:`symsbl._kinematics.estimate_velocity`) and the output error fits the measured states alone.
     evidence : {"output-error", "equation-error"}, optional
         How effects are scored: the Laplace evidence of the output-error fit of every record
         (default with ``error="simulation"``), or the RVM evidence of the weak-form equation error of
@@ -191,6 +193,13 @@ def discrepancy(
     if heldout is None:
         data, heldout = split_record(data)
     check_record(heldout, "heldout", names)
+    states = with_velocities(data.state_names, kinematics)
+    measured = tuple(data.state_names)
+    if states != measured:  # displacement only: the velocities of the declared pairs estimated for the start
+        if evidence != "output-error":
+            raise DataError(expected("evidence", "'output-error' when a velocity is not measured (only the output "
+                                     "error fits the measured positions alone)", evidence, raw=True))
+        (data, heldout), _ = complete_states([data, heldout], states, parse_kinematics(kinematics, states))
     if isinstance(base, str):
         base = parse_base(base, data.state_names, data.input_names)
     if not isinstance(base, dict) or set(base) != set(data.state_names):
@@ -200,7 +209,7 @@ def discrepancy(
     if displacement is not None and velocity is not None and not pairs:
         pairs = ((displacement, velocity),)
     run = Workflow(data, heldout, base, effects, displacement or (pairs[0][0] if pairs else None),
-                   velocity or (pairs[0][1] if pairs else None), derivative, error)
+                   velocity or (pairs[0][1] if pairs else None), derivative, error, measured)
     start = run.design.model(run.structure, data)
     if evidence == "output-error":
         run.use_output_error(start, pairs, search_library)
@@ -257,8 +266,10 @@ def _ending(step) -> str:
 class Workflow:
     """The state of one discrepancy run: the records, the design and the current structure."""
 
-    def __init__(self, data, heldout, base, effects, displacement, velocity, derivative, error):
+    def __init__(self, data, heldout, base, effects, displacement, velocity, derivative, error, measured=None):
         self.data, self.heldout, self.error, self.effects = data, heldout, error, tuple(effects)
+        #: The states the records measure (an unmeasured velocity's column is estimated for the start).
+        self.measured = tuple(data.state_names) if measured is None else tuple(measured)
         self.x, self.v = _pair(base, data.state_names, displacement, velocity)
         states = tuple(ca.SX.sym(n) for n in data.state_names)
         inputs = tuple(ca.SX.sym(n) for n in data.input_names)
@@ -280,12 +291,13 @@ class Workflow:
         self.candidates = [(w, cols) for w, cols in candidates if None not in cols]
         lib = self.design.library
         self.input_terms = [i for i, c in enumerate(self.structure[self.v]) if lib.terms[c].name in data.input_names]
-        self.noise = noise_levels(data)
+        estimated = set(data.state_names) - set(self.measured)  # an unmeasured velocity's estimate has no noise level
+        self.noise = {k: level for k, level in noise_levels(data).items() if k not in estimated}
         self.added_keys: set = set()  # (effect, where) of what the search has added
 
     def err(self, model, traj) -> float:
-        """The held-out error measure of ``model`` on ``traj``."""
-        return heldout_error(model, traj, self.error, self.design, self.v)
+        """The held-out error measure of ``model`` on ``traj`` (over the measured states)."""
+        return heldout_error(model, traj, self.error, self.design, self.v, self.measured)
 
     def use_output_error(self, start, pairs, search_library: bool) -> None:
         """Prepare the output-error search from the equation-error fit ``start`` of the base structure: every
@@ -307,7 +319,6 @@ class Workflow:
         taken = {n for c in named for n in c.terms} | {n for eq in start.equations for n in eq.names}
         self.oe_candidates = named + (library_candidates(self.pairs, taken) if search_library else [])
         self.records = [data, self.heldout]
-        self.measured = tuple(data.state_names)
         self.input_names = tuple(data.input_names)
         self.settings = Settings()
 
@@ -318,7 +329,7 @@ class Workflow:
     def where(self, model):
         """Where ``model`` disagrees with the records (the first pair)."""
         self.design.weight = 1.0
-        return locate(model, self.data, self.heldout, self.design, self.x, self.v, self.error)
+        return locate(model, self.data, self.heldout, self.design, self.x, self.v, self.error, self.measured)
 
     def residual_ratio(self, scorer: Scorer) -> float:
         """The largest residual standard deviation over the measured noise level, per record and state."""
