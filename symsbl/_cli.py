@@ -128,7 +128,17 @@ def _read(args, path, states, inputs, *, optional=()):
                 f"--states {','.join(absent)}", "a column of DATA (the position of each --kinematics pair is "
                 "measured; its velocity and latent states may be absent)", "no such column", raw=True))
         states = [s for s in states if s in present or s not in optional]
-    return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+    try:
+        return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+    except DataError:
+        if optional or getattr(args, "kinematics", None) != "":
+            raise
+        absent = [s for s in states if s not in read_columns(path)]  # a velocity left out, its pair not declared?
+        if not absent or len(absent) == len(states):
+            raise
+        raise DataError(expected(f"--states {','.join(absent)}", "a column of DATA", "no such column",
+                                 f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics "
+                                 f"<position>:{absent[0]}", raw=True)) from None
 
 
 def _unmeasured_allowed(states, kinematics) -> tuple:

@@ -151,6 +151,13 @@ CLI_CASES = [
     ("unknown error measure", None,
      ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--base", "x1: x2; x2: x1", "--error", "rms"], 2,
      "symsbl discrepancy: error: argument --error: invalid choice: 'rms' (choose from 'simulation', 'equation')"),
+    ("a velocity left out without its pair", None, ["identify", "{d}/train.csv", "--states", "x1,v1", "--inputs", "F"],
+     2, "symsbl identify: error: --states v1: expected a column of DATA, received no such column; if v1 is an "
+     "unmeasured velocity, declare its pair: --kinematics <position>:v1"),
+    ("discrepancy: a velocity left out without its pair", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,v1", "--inputs", "F", "--base", "x1: v1; v1: F, x1, v1"], 2,
+     "symsbl discrepancy: error: --states v1: expected a column of DATA, received no such column; if v1 is an "
+     "unmeasured velocity, declare its pair: --kinematics <position>:v1"),
     ("missing required option", None, ["identify", "{d}/train.csv"], 2,
      "symsbl identify: error: the following arguments are required: --states"),
     ("no command", None, [], 2,
