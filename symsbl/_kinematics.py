@@ -21,6 +21,24 @@ from ._weakform import WeakForm
 __all__ = ["parse_kinematics", "estimate_velocity", "latent_states", "complete_states", "with_velocities"]
 
 
+def _pairs(spec) -> list:
+    """The ``(position, velocity)`` pairs a mapping or text declares, not yet checked against any states."""
+    if spec is None or spec == "" or spec == {}:
+        return []
+    if isinstance(spec, str):
+        pairs = []
+        for part in filter(None, (p.strip() for p in spec.split(","))):
+            x, sep, v = part.partition(":")
+            if not sep:
+                raise DataError(expected("--kinematics", "position:velocity pairs such as x1:x2,x3:x4", part))
+            pairs.append((x.strip(), v.strip()))
+        return pairs
+    if isinstance(spec, Mapping):
+        return list(spec.items())
+    raise DataError(expected("kinematics", "a mapping {position: velocity} or text 'x1:x2'",
+                             type(spec).__name__, raw=True))
+
+
 def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]:
     """``(position, velocity)`` pairs from a mapping ``{"x1": "x2"}`` or the text ``"x1:x2,x3:x4"``.
 
@@ -29,20 +47,7 @@ def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]
     >>> parse_kinematics("y:v", ["y", "v", "z"])
     (('y', 'v'),)
     """
-    if spec is None or spec == "" or spec == {}:
-        return ()
-    if isinstance(spec, str):
-        pairs = []
-        for part in filter(None, (p.strip() for p in spec.split(","))):
-            x, sep, v = part.partition(":")
-            if not sep:
-                raise DataError(expected("--kinematics", "position:velocity pairs such as x1:x2,x3:x4", part))
-            pairs.append((x.strip(), v.strip()))
-    elif isinstance(spec, Mapping):
-        pairs = list(spec.items())
-    else:
-        raise DataError(expected("kinematics", "a mapping {position: velocity} or text 'x1:x2'",
-                                 type(spec).__name__, raw=True))
+    pairs = _pairs(spec)
     used: set = set()
     for x, v in pairs:
         if x not in states or v not in states or x == v:
@@ -63,13 +68,7 @@ def with_velocities(names: Sequence[str], spec) -> tuple[str, ...]:
     >>> with_velocities(["y1", "y2", "z"], "y1:v1,y2:v2")
     ('y1', 'v1', 'y2', 'v2', 'z')
     """
-    if isinstance(spec, str):
-        pairs = [tuple(n.strip() for n in part.partition(":")[::2]) for part in spec.split(",") if ":" in part]
-    elif isinstance(spec, Mapping):
-        pairs = list(spec.items())
-    else:
-        return tuple(names)
-    extra = {x: v for x, v in pairs if x in names and v not in names}
+    extra = {x: v for x, v in _pairs(spec) if x in names and v not in names}
     return tuple(n for name in names for n in ((name, extra[name]) if name in extra else (name,)))
 
 
