@@ -72,6 +72,7 @@ def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
         return EffectScore(c.name, c.label, description, family, c.terms, lin - c.penalty, math.nan, math.nan, None,
                            True, "screened only (quadratic model of the evidence)", None, c.shape, where=c.pair.where)
     coef, std = float(fit["coefs"][0]), float(fit["stds"][0])
+    ref = _input_coefficient(fit["model"], first, run.input_names)  # the input gain of the same fit as coef
     ok, reason = True, ""
     if e is not None and e.sign == -1 and ref is not None and coef * ref > 0:
         ok, reason = False, "wrong sign: it would feed energy in"
