@@ -265,6 +265,30 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
 # ---------------------------------------------------------------------------- scenarios
 
 
+def test_the_continuation_jumps_to_the_whole_record_and_reaches_the_same_optimum(monkeypatch):
+    """A lightly damped oscillator (m 1, c 0.3, k 2e3: 7.1 Hz, damping ratio 0.3 %), 30 s at 1024 Hz, 2 %
+    noise: once the shortest segments have settled, the whole record already simulates the data to within the
+    allowance, so the continuation jumps to it (fewer passes); the coefficients and evidence are those of the
+    stage-by-stage continuation (the jump refused) to well within a posterior standard deviation."""
+    from symsbl._refine import solver
+
+    x1, x2, F = symbols("x1 x2 F")
+    clean = simulate(_oscillator(1.0, 0.3, 2e3, 0.0), time_grid(30.0, 1024),
+                     inputs=Multisine(rms=2.0, f_min=1.0, f_max=20.0, seed=3))
+    record = clean.with_noise(0.02, seed=4)
+    start = identify(record, symsbl.custom([x2, x1, F], [x1, x2, F]), refine=False)
+    jumped = refine(start, record, select=False)
+    monkeypatch.setattr(solver, "JUMP", -np.inf)  # every jump refused: segments 8x longer at each stage
+    staged = refine(start, record, select=False)
+    a, b = jumped.metadata["refine"], staged.metadata["refine"]
+    assert [s["jump"] for s in a["stages"][:-1]] == [True] and len(b["stages"]) > 2, (a["stages"], b["stages"])
+    assert a["passes"] < b["passes"], (a["passes"], b["passes"])
+    for eq_a, eq_b in zip(jumped.equations[1:], staged.equations[1:]):
+        stds = np.array([t.std for t in eq_b.terms])
+        assert np.all(np.abs(eq_a.coefs - eq_b.coefs) < 0.01 * stds), (eq_a.coefs, eq_b.coefs, stds)
+    assert a["log_evidence"] == pytest.approx(b["log_evidence"], abs=0.05)
+
+
 def _oscillator(m, c, k, k3):
     x1, x2, F = symbols("x1 x2 F")
     return OdeSystem((x1, x2), (F,), (x2, (F - c * x2 - k * x1 - k3 * x1**3) / m), name="duffing")

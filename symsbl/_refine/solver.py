@@ -7,7 +7,9 @@ segments (each barely longer than the system's memory, so a poor starting point 
 simulation run away) the fit continues with segments ``growth`` times longer, warm-started, until one
 segment spans each record (the true output error) or a segment's state-transition matrix grows past
 :data:`PHI_STOP` (a chaotic or unstable system, whose long-horizon output error is ill-posed: the fit
-stays at that segment length, which is still a consistent estimator).
+stays at that segment length, which is still a consistent estimator). After each stage the whole
+records are tried at once and kept when they simulate the data about as well as the segments did
+(:func:`_jump`), which skips the stages between when the coefficients are already good.
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ __all__ = ["Solution", "fit", "lm", "noise_precisions"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
+
+#: Excess of the whole records' cost over the segments' (as a share of it) up to which the continuation
+#: jumps to whole records (see :func:`_jump`).
+JUMP = 0.02
 
 
 @dataclass
@@ -80,12 +86,13 @@ def _step(H, g, theta, alpha, lam):
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
-def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 60, lam: float = 1e-4):
+def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 60, lam: float = 1e-4,
+       first=None):
     """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed weights and
-    segments; returns ``theta, X0, (H, g, rr, end_S), n_pass``."""
+    segments; returns ``theta, X0, (H, g, rr, end_S), n_pass``. ``first``: the pass at the start, if made."""
     npar = theta.size
-    H, g, rr, end_S = passes.sensitivities(theta, X0)
-    n_pass = 1
+    H, g, rr, end_S = passes.sensitivities(theta, X0) if first is None else first
+    n_pass = int(first is None)
     E = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
     if not np.isfinite(E):
         return theta, X0, (H, g, rr, end_S), n_pass
@@ -185,15 +192,55 @@ def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
     return np.where(scale > 0, scale, 1.0)
 
 
+def _jump(passes: Passes, theta, X0, full: int, scale: np.ndarray, cost: float):
+    """Whole segments of ``full`` samples tried at once: their initial states are those of the segments they
+    start with, and they are kept if they simulate the record as well as the short segments did, up to what
+    the short segments' extra initial states fit of the noise (half a nat each) and :data:`JUMP` of the cost,
+    with a state-transition growth below :data:`PHI_STOP`. Returns ``X0`` and the pass (None when not kept:
+    the segments are restored) and the growth over the whole segments."""
+    before = passes.starts.copy()
+    starts = passes.segment_starts(full)
+    X0_full = X0[np.searchsorted(before, starts)]
+    passes.use_segments(starts)
+    trial = passes.sensitivities(theta, X0_full)
+    phi = _growth(trial[3], theta.size, scale)
+    allowance = 0.5 * passes.layout["nx"] * (len(before) - len(starts)) + JUMP * cost
+    if np.all(np.isfinite(trial[2])) and 0.5 * trial[2].sum() <= cost + allowance and phi <= PHI_STOP:
+        return (X0_full, trial), phi
+    passes.use_segments(before)
+    return None, phi
+
+
+def _lengthen(passes: Passes, X0, length: int, phi: float, growth: int, full: int):
+    """Segments ``growth`` times longer (at most ``full``, and short enough that the state-transition growth
+    ``phi`` over ``length`` samples, extrapolated, stays below :data:`PHI_STOP`), each starting from the
+    initial state of the segment it starts with: ``X0, length``, or None when not even twice as long is."""
+    factor = min(growth, _longest(length, phi) // length)
+    if factor < 2:
+        return None
+    length = min(length * factor, full)
+    starts = passes.segment_starts(length)
+    X0 = X0[np.searchsorted(passes.starts, starts)]
+    passes.use_segments(starts)
+    return X0, length
+
+
+def _require_finite(theta, H) -> None:
+    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(H))):
+        raise SimulationError(expected("output-error refinement", "a simulation that stays finite",
+                                       "non-finite states or sensitivities (the model diverges on this record)",
+                                       "the equation-error model stands", raw=True))
+
+
 def _first_segments(passes: Passes, theta, guess, length: int):
     starts = passes.segment_starts(length)
     passes.use_segments(starts)
     return initial_states(passes, theta, guess[starts].copy())
 
 
-def _settle_noise(passes: Passes, theta, X0, alpha, active, tol: float, update_noise: bool):
+def _settle_noise(passes: Passes, theta, X0, alpha, active, tol: float, update_noise: bool, first=None):
     """LM at the current weights, then once more if the noise estimate moved by more than 2 %."""
-    theta, X0, blocks, n = lm(passes, theta, X0, alpha, active, tol=tol)
+    theta, X0, blocks, n = lm(passes, theta, X0, alpha, active, tol=tol, first=first)
     if update_noise:
         w_new = _reweight(passes, blocks[2], active.size)
         if np.max(np.abs(np.log(w_new / passes.w))) > 0.02:
@@ -254,15 +301,16 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     else:
         X0 = _first_segments(passes, theta, guess, length)
     scale = _state_scale(guess, X0)
-    stages, n_pass, previous = [], 0, None
+    stages, n_pass, previous, first, leap = [], 0, None, None, True
     while True:
         final = length >= full
         theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
-                                                        update_noise)
+                                                        update_noise, first)
         n_pass += n
         phi = _growth(end_S, theta.size, scale)
         stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
                            cost=float(0.5 * rr.sum())))
+        first = None
         if phi > PHI_STOP and previous is not None:
             # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
             # initial states and coefficients are then nearly collinear; back to the last length that did not
@@ -276,18 +324,18 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
             break
         previous = (length, passes.starts.copy(), theta.copy(), X0.copy())
-        factor = min(growth, _longest(length, phi) // length)
-        if factor < 2:
+        if leap:  # not once whole segments amplified the state past PHI_STOP: they would again
+            n_pass += 1
+            jumped, phi_full = _jump(passes, theta, X0, full, scale, float(0.5 * rr.sum()))
+            stages[-1]["jump"], leap = jumped is not None, phi_full <= PHI_STOP
+            if jumped is not None:
+                (X0, first), length = jumped, full
+                continue
+        longer = _lengthen(passes, X0, length, phi, growth, full)
+        if longer is None:
             break  # longer segments would amplify the state by more than PHI_STOP: stay here
-        new_length = min(length * factor, full)
-        new_starts = passes.segment_starts(new_length)
-        X0 = X0[np.searchsorted(passes.starts, new_starts)]
-        passes.use_segments(new_starts)
-        length = new_length
-    if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(H))):
-        raise SimulationError(expected("output-error refinement", "a simulation that stays finite",
-                                       "non-finite states or sensitivities (the model diverges on this record)",
-                                       "the equation-error model stands", raw=True))
+        X0, length = longer
+    _require_finite(theta, H)
     if mackay:
         alpha = _prior_precisions(H, theta, alpha, active)
         theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol)
