@@ -31,6 +31,10 @@ __all__ = ["Engine", "Settings", "sign_jumps", "state_guess", "design_rows", "to
            "residual_fraction"]
 
 
+#: Samples whose spectrum sets the first segment length at most (the refinement's default sample budget).
+SPECTRUM_SAMPLES = 2**18
+
+
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """How the output-error fits of one refinement run (see :func:`symsbl.refine`)."""
@@ -173,10 +177,12 @@ class Engine:
         return rate
 
     def _first_length(self) -> int:
-        """About four periods of the highest frequency the measured states carry, at least 64 samples."""
+        """About four periods of the highest frequency the measured states carry (in the first
+        :data:`SPECTRUM_SAMPLES` samples of the longest record), at least 64 samples."""
         r = max(self.records, key=lambda tr: tr.n_samples)
-        X = np.column_stack([r.column(m) for m in self.measured])
-        return int(max(64, 8 * WeakForm().resolve(r.t, X).window))  # the window is 0.5 / f_hi in samples
+        n = min(r.n_samples, SPECTRUM_SAMPLES)
+        X = np.column_stack([r.column(m)[:n] for m in self.measured])
+        return int(max(64, 8 * WeakForm().resolve(r.t[:n], X).window))  # the window is 0.5 / f_hi in samples
 
     def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,
             longest: int | None = None) -> Solution:

@@ -67,5 +67,5 @@ def _fit(model, record, observed, guess, interpolation, substeps, jit) -> np.nda
     passes = Passes(param, layout, jit=jit)
     passes.use_weights(noise_precisions(layout.Y, np.isfinite(layout.Y)))
     passes.use_segments(np.array([0]))
-    X0 = initial_states(passes, np.zeros(0), guess[None, :], sweeps=8)
+    X0, _, _ = initial_states(passes, np.zeros(0), guess[None, :], sweeps=8, rtol=0.0)
     return X0[0] if np.all(np.isfinite(X0)) else guess

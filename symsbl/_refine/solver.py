@@ -131,30 +131,35 @@ def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 
 
 
 @np.errstate(over="ignore", invalid="ignore")
-def initial_states(passes: Passes, theta, X0, sweeps: int = 3, tol: float = 0.1):
+def initial_states(passes: Passes, theta, X0, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3):
     """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
     segment whose step does not lower its cost tries a quarter of it next. At most ``sweeps`` sweeps, fewer
-    once every segment's step was accepted and they gained less than ``tol`` nats together."""
+    once every segment's step was accepted and they gained less than ``tol`` nats or ``rtol`` of the cost
+    together (the joint fit that follows finishes what is left: it is a start, not the answer). Returns the
+    initial states, the blocks of :meth:`Passes.sensitivities` there and the number of passes made."""
     npar = theta.size
-    H, g, rr, _ = passes.sensitivities(theta, X0)
+    H, g, rr, end_S = passes.sensitivities(theta, X0)
     cost = 0.5 * rr.sum(1)
     shrink = np.ones(len(X0))
+    n_pass = 1
     for _ in range(sweeps):
         Hxx = H[:, npar:, npar:].copy()
         nx = Hxx.shape[1]
         dxx = np.einsum("kii->ki", Hxx)
         Hxx[:, np.arange(nx), np.arange(nx)] += 1e-9 * dxx + 1e-300
         dX = np.linalg.solve(Hxx, g[:, npar:, None])[:, :, 0] * shrink[:, None]
-        H2, g2, rr2, _ = passes.sensitivities(theta, X0 + dX)
+        H2, g2, rr2, end_S2 = passes.sensitivities(theta, X0 + dX)
+        n_pass += 1
         c2 = 0.5 * rr2.sum(1)
         better = np.isfinite(c2) & (c2 <= cost)
         gain = float(np.sum(cost[better] - c2[better]))
         X0 = X0 + dX * better[:, None]
-        H[better], g[better], cost[better] = H2[better], g2[better], c2[better]
+        H[better], g[better], rr[better], end_S[better], cost[better] = (H2[better], g2[better], rr2[better],
+                                                                         end_S2[better], c2[better])
         shrink = np.where(better, 1.0, shrink / 4)
-        if gain < tol and np.all(better):
-            break  # converged: another sweep would gain less than tol nats
-    return X0
+        if gain < max(tol, rtol * float(cost.sum())) and np.all(better):
+            break  # converged: another sweep would gain little
+    return X0, (H, g, rr, end_S), n_pass
 
 
 def _reweight(passes: Passes, rr, n_free: int):
@@ -297,11 +302,11 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     length = min(length0, full)
     if warm is not None:
         passes.use_segments(warm.starts)
-        X0, length, full = warm.X0.copy(), warm.length, warm.length
+        X0, length, full, first, n_pass = warm.X0.copy(), warm.length, warm.length, None, 0
     else:
-        X0 = _first_segments(passes, theta, guess, length)
+        X0, first, n_pass = _first_segments(passes, theta, guess, length)
     scale = _state_scale(guess, X0)
-    stages, n_pass, previous, first, leap = [], 0, None, None, True
+    stages, previous, leap = [], None, True
     while True:
         final = length >= full
         theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
@@ -338,7 +343,8 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     _require_finite(theta, H)
     if mackay:
         alpha = _prior_precisions(H, theta, alpha, active)
-        theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol)
+        # the blocks at the optimum do not depend on the prior: the pass made there is the first of this fit
+        theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol, first=(H, g, rr, end_S))
         n_pass += n
     Hs, _ = restrict(H, None, active, theta.size)
     cost = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
