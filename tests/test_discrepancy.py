@@ -386,7 +386,8 @@ def test_a_term_outside_the_catalogue_is_reported_symbolically():
 
 
 def chain(extra_on):
-    """Two masses, the force on the first; a cubic spring to ground on mass ``extra_on`` (1 or 2)."""
+    """Two masses (1.5 and 0.8 kg), the force on the first; a cubic spring to ground (1.3e7 N/m^3) on mass
+    ``extra_on`` (1 or 2)."""
     x1, v1, x2, v2, F = (ca.SX.sym(n) for n in ("x1", "v1", "x2", "v2", "F"))
     m1, m2, k3 = 1.5, 0.8, 1.3e7
     f1 = k3 * x1**3 if extra_on == 1 else 0
@@ -410,6 +411,8 @@ def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path
     (added,) = doc["added"]
     assert (added["effect"], added["where"]) == ("cubic_stiffness", "x2, v2")
     assert added["coef"] == pytest.approx(true, rel=0.05)
+    # the force drives mass 1 only: mass 2's 1/m comes from the coupling spring's reciprocity (k3 = 1.3e7 N/m^3)
+    assert added["physical"] == pytest.approx(1.3e7, rel=0.05)
     assert added["runner_up"] and added["bayes_factor"] > 20
     final = symsbl.IdentifiedModel.from_json(doc["final"])
     assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01

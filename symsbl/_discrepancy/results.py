@@ -85,8 +85,9 @@ class EffectScore:
     coef, std : float
         Posterior mean and standard deviation of the (first) term's coefficient after the refit.
     physical : float or None
-        The coefficient as a force per unit term, ``-coef / coef(input)`` (None without a single
-        input term).
+        The coefficient as a force per unit term, ``-coef m``, with ``1/m`` the equation's input gain or,
+        for a mass the input does not drive, its reciprocity with one that it does (None when neither is
+        known).
     admissible : bool
     reason : str
         Why it is not admissible or not in the model, "" otherwise.

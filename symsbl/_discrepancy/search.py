@@ -61,18 +61,36 @@ def _input_coefficient(model, state: str, input_names) -> float | None:
     return coefs[0] if len(coefs) == 1 else None
 
 
+def _inverse_mass(model, velocity: str, run) -> float | None:
+    """``1/m`` of the mass whose acceleration is ``velocity``'s equation: its input gain, or, for a mass the
+    input does not drive, from a coupled mass ``j`` that it drives by reciprocity (a spring or damper between
+    them pulls both ways alike, ``m_i a_ij = m_j a_ji``, with ``a_ij`` the coefficient of ``j``'s position,
+    else velocity, in ``i``'s equation): ``1/m_i = (1/m_j) a_ij / a_ji``. None when neither applies."""
+    direct = _input_coefficient(model, velocity, run.input_names)
+    if direct is not None:
+        return direct
+    singles = [p for p in getattr(run, "pairs", ()) if len(p.velocities) == 1]
+    own = next((p for p in singles if p.v == velocity), None)
+    for other in singles:
+        b = None if own is None or other is own else _input_coefficient(model, other.v, run.input_names)
+        for mine, theirs in ((own.x, other.x), (own.v, other.v)) if b is not None else ():
+            a_ij, a_ji = model.equation(velocity).coef(theirs), model.equation(other.v).coef(mine)
+            if a_ij * a_ji > 0:
+                return b * a_ij / a_ji
+    return None
+
+
 def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
     """The :class:`EffectScore` of candidate ``c`` (``fit``: its refit, None when only screened)."""
     e = c.effect
     family = e.family if e is not None else OUTSIDE_CATALOGUE
     description = e.description if e is not None else f"the library term {c.label}, outside the catalogue"
     first = c.additions[0][0]
-    ref = _input_coefficient(model, first, run.input_names)
     if fit is None:
         return EffectScore(c.name, c.label, description, family, c.terms, lin - c.penalty, math.nan, math.nan, None,
                            True, "screened only (quadratic model of the evidence)", None, c.shape, where=c.pair.where)
     coef, std = float(fit["coefs"][0]), float(fit["stds"][0])
-    ref = _input_coefficient(fit["model"], first, run.input_names)  # the input gain of the same fit as coef
+    ref = _inverse_mass(fit["model"], first, run)  # from the same fit as coef
     ok, reason = True, ""
     if e is not None and e.sign == -1 and ref is not None and coef * ref > 0:
         ok, reason = False, "wrong sign: it would feed energy in"
