@@ -442,6 +442,22 @@ def test_a_displacement_only_record_names_the_hidden_effect_through_the_command_
                     evidence="equation-error", error="equation")
 
 
+def test_an_effect_between_two_masses_names_its_term_once():
+    """Friction between two masses adds sign(v1 - v2) to both velocity equations (each with its own
+    coefficient); the candidate names the term once, as the report and the JSON show it."""
+    from symsbl._discrepancy.candidates import Pair, catalogue_candidates
+
+    names = ("x1", "v1", "x2", "v2")
+    symbols = {n: ca.SX.sym(n) for n in names}
+    t = np.linspace(0.0, 1.0, 101)
+    record = Trajectory(t, np.column_stack([np.sin(3 * t), np.cos(3 * t), np.sin(5 * t), np.cos(5 * t)]),
+                        state_names=names)
+    between = Pair("x1-x2", "v1-v2", ("v1", "v2"), symbols["x1"] - symbols["x2"], symbols["v1"] - symbols["v2"])
+    (c,) = catalogue_candidates([get_effect("coulomb_friction")], [between], symbols, [record])
+    assert [s for s, _ in c.additions] == ["v1", "v2"]
+    assert c.terms == ("sign(v1 - v2)",)
+
+
 def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
     from scipy.signal import butter, sosfiltfilt
 

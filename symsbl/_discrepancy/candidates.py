@@ -76,7 +76,8 @@ class Candidate:
 
     @property
     def terms(self) -> tuple:
-        return tuple(term_name(e) for _, exprs in self.additions for e in exprs)
+        """The added terms' names, each once (an effect between two masses adds the same term to both)."""
+        return tuple(dict.fromkeys(term_name(e) for _, exprs in self.additions for e in exprs))
 
     @property
     def key(self) -> tuple:
