@@ -262,6 +262,27 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
 
 
+def test_longer_segments_start_from_the_states_the_shorter_ones_reach():
+    """Segments of 192 samples after segments of 128 (a limit on the length, ``longest``, need not be a
+    multiple of the stages): a new segment starting inside an old one starts from the state the old one's
+    simulation reaches there, which on the noise-free record is the reference simulation's state (not the
+    initial state of another segment, or past the last one)."""
+    from symsbl._refine.engine import Engine, Settings
+    from symsbl._refine.solver import _lengthen
+
+    t, X = _duffing_clean()
+    record = Trajectory(t, X, _forcing(t)[:, None], ("x1", "x2"), ("F",))
+    start = identify(record, _library(), refine=False)
+    assert np.allclose(_coefs(start), TRUTH, rtol=1e-3)
+    engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=8, jit=False), {})
+    passes = engine.passes
+    passes.use_segments(passes.segment_starts(128))
+    X0, length = _lengthen(passes, engine.param.theta0, X[passes.starts], 128, 1.0, 8, 192)
+    assert length == 192 and np.array_equal(passes.starts, 192 * np.arange(round(len(t) / 192)))
+    err = np.max(np.abs(X0 - X[passes.starts]) / X.std(axis=0))
+    assert err < 1e-2, err  # the initial state of the segment after: up to 3.6 std
+
+
 # ---------------------------------------------------------------------------- scenarios
 
 

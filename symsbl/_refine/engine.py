@@ -177,12 +177,15 @@ class Engine:
         return rate
 
     def _first_length(self) -> int:
-        """About four periods of the highest frequency the measured states carry (in the first
-        :data:`SPECTRUM_SAMPLES` samples of the longest record), at least 64 samples."""
+        """About four periods of the highest frequency the measured states carry, at least 64 samples: the
+        shortest over the longest record, read in at most four evenly spaced stretches of
+        :data:`SPECTRUM_SAMPLES` / 4 samples (a record that sweeps upwards has its highest frequency late)."""
         r = max(self.records, key=lambda tr: tr.n_samples)
-        n = min(r.n_samples, SPECTRUM_SAMPLES)
-        X = np.column_stack([r.column(m)[:n] for m in self.measured])
-        return int(max(64, 8 * WeakForm().resolve(r.t[:n], X).window))  # the window is 0.5 / f_hi in samples
+        n = min(r.n_samples, SPECTRUM_SAMPLES // 4) if r.n_samples > SPECTRUM_SAMPLES else r.n_samples
+        X = np.column_stack([r.column(m) for m in self.measured])
+        windows = [WeakForm().resolve(r.t[a:a + n], X[a:a + n]).window  # 0.5 / f_hi in samples
+                   for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]
+        return int(max(64, 8 * min(windows)))
 
     def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,
             longest: int | None = None) -> Solution:

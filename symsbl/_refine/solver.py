@@ -197,37 +197,56 @@ def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
     return np.where(scale > 0, scale, 1.0)
 
 
+def _carry(passes: Passes, theta, X0, starts: np.ndarray) -> np.ndarray:
+    """Initial states for segments ``starts`` from the current ones: a current segment's own where one starts
+    there (the continuation's lengths are multiples of each other), else the state its simulation reaches."""
+    idx = np.minimum(np.searchsorted(passes.starts, starts), len(passes.starts) - 1)
+    if np.array_equal(passes.starts[idx], starts):
+        return X0[idx]
+    return passes.simulate(theta, X0)[starts]
+
+
+@np.errstate(over="ignore", invalid="ignore")  # a whole record that diverges is refused by its non-finite cost
 def _jump(passes: Passes, theta, X0, full: int, scale: np.ndarray, cost: float):
-    """Whole segments of ``full`` samples tried at once: their initial states are those of the segments they
-    start with, and they are kept if they simulate the record as well as the short segments did, up to what
-    the short segments' extra initial states fit of the noise (half a nat each) and :data:`JUMP` of the cost,
-    with a state-transition growth below :data:`PHI_STOP`. Returns ``X0`` and the pass (None when not kept:
-    the segments are restored) and the growth over the whole segments."""
+    """Whole segments of ``full`` samples tried at once, from the initial states of the segments they start
+    with; kept if they simulate the record as well as the short segments did, up to what the short
+    segments' extra initial states fit of the noise (half a nat each) and :data:`JUMP` of the cost, with a
+    state-transition growth below :data:`PHI_STOP` (else the segments are restored). Returns whether they
+    were kept, the trial ``(starts, X0, pass)`` and the growth over the whole segments."""
     before = passes.starts.copy()
     starts = passes.segment_starts(full)
-    X0_full = X0[np.searchsorted(before, starts)]
+    X0_full = _carry(passes, theta, X0, starts)
     passes.use_segments(starts)
     trial = passes.sensitivities(theta, X0_full)
     phi = _growth(trial[3], theta.size, scale)
     allowance = 0.5 * passes.layout["nx"] * (len(before) - len(starts)) + JUMP * cost
-    if np.all(np.isfinite(trial[2])) and 0.5 * trial[2].sum() <= cost + allowance and phi <= PHI_STOP:
-        return (X0_full, trial), phi
-    passes.use_segments(before)
-    return None, phi
+    kept = bool(np.all(np.isfinite(trial[2])) and 0.5 * trial[2].sum() <= cost + allowance and phi <= PHI_STOP)
+    if not kept:
+        passes.use_segments(before)
+    return kept, (starts, X0_full, trial), phi
 
 
-def _lengthen(passes: Passes, X0, length: int, phi: float, growth: int, full: int):
+def _lengthen(passes: Passes, theta, X0, length: int, phi: float, growth: int, full: int):
     """Segments ``growth`` times longer (at most ``full``, and short enough that the state-transition growth
-    ``phi`` over ``length`` samples, extrapolated, stays below :data:`PHI_STOP`), each starting from the
-    initial state of the segment it starts with: ``X0, length``, or None when not even twice as long is."""
+    ``phi`` over ``length`` samples, extrapolated, stays below :data:`PHI_STOP`), from the states the
+    current segments reach at their starts: ``X0, length``, or None when not even twice as long is."""
     factor = min(growth, _longest(length, phi) // length)
     if factor < 2:
         return None
     length = min(length * factor, full)
     starts = passes.segment_starts(length)
-    X0 = X0[np.searchsorted(passes.starts, starts)]
+    if np.array_equal(starts, passes.segment_starts(full)):
+        length = full  # the same segments (each record's last one runs to its end): the final stage
+    X0 = _carry(passes, theta, X0, starts)
     passes.use_segments(starts)
     return X0, length
+
+
+def _reuse(passes: Passes, X0, trial):
+    """The pass of a refused ``trial`` when the segments and initial states are now the same (else None)."""
+    if trial is not None and np.array_equal(passes.starts, trial[0]) and np.array_equal(X0, trial[1]):
+        return trial[2]
+    return None
 
 
 def _require_finite(theta, H) -> None:
@@ -263,6 +282,52 @@ def _prior_precisions(H, theta, alpha, active):
     out = alpha.copy()
     out[active] = new
     return out
+
+
+def _continuation(passes: Passes, theta, X0, first, alpha, active, guess, length: int, full: int, growth: int,
+                  tol: float, update_noise: bool):
+    """The stages of :func:`fit` from segments of ``length`` samples: ``theta, X0, blocks, length, stages,
+    passes``."""
+    scale = _state_scale(guess, X0)
+    stages, previous, leap, jumped, n_pass = [], None, True, False, 0
+    while True:
+        final = length >= full
+        theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
+                                                        update_noise, first)
+        n_pass += n
+        phi = _growth(end_S, theta.size, scale)
+        stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
+                           cost=float(0.5 * rr.sum())))
+        first, trial = None, None
+        if phi > PHI_STOP and previous is not None:
+            # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
+            # initial states and coefficients are then nearly collinear; back to the last length that did not
+            length, starts, theta, X0 = previous
+            passes.use_segments(starts)
+            if jumped:  # whole records that grew once fitted: lengthen stage by stage from before the jump
+                stages[-1]["back"], leap, jumped = True, False, False
+                continue
+            theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol, update_noise)
+            n_pass += n
+            stages.append(dict(length=length, segments=len(starts), passes=n, growth=float("nan"),
+                               cost=float(0.5 * rr.sum()), back=True))
+            break
+        if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
+            break
+        previous = (length, passes.starts.copy(), theta.copy(), X0.copy())
+        if leap:  # not once whole segments amplified the state past PHI_STOP: they would again
+            n_pass += 1
+            kept, trial, phi_full = _jump(passes, theta, X0, full, scale, float(0.5 * rr.sum()))
+            stages[-1]["jump"], leap = kept, phi_full <= PHI_STOP
+            if kept:
+                (_, X0, first), length, jumped = trial, full, True
+                continue
+        longer = _lengthen(passes, theta, X0, length, phi, growth, full)
+        if longer is None:
+            break  # longer segments would amplify the state by more than PHI_STOP: stay here
+        X0, length = longer
+        first = _reuse(passes, X0, trial)
+    return theta, X0, (H, g, rr, end_S), length, stages, n_pass
 
 
 def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
@@ -305,41 +370,9 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         X0, length, full, first, n_pass = warm.X0.copy(), warm.length, warm.length, None, 0
     else:
         X0, first, n_pass = _first_segments(passes, theta, guess, length)
-    scale = _state_scale(guess, X0)
-    stages, previous, leap = [], None, True
-    while True:
-        final = length >= full
-        theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
-                                                        update_noise, first)
-        n_pass += n
-        phi = _growth(end_S, theta.size, scale)
-        stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
-                           cost=float(0.5 * rr.sum())))
-        first = None
-        if phi > PHI_STOP and previous is not None:
-            # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
-            # initial states and coefficients are then nearly collinear; back to the last length that did not
-            length, starts, theta, X0 = previous
-            passes.use_segments(starts)
-            theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol, update_noise)
-            n_pass += n
-            stages.append(dict(length=length, segments=len(starts), passes=n, growth=float("nan"),
-                               cost=float(0.5 * rr.sum()), back=True))
-            break
-        if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
-            break
-        previous = (length, passes.starts.copy(), theta.copy(), X0.copy())
-        if leap:  # not once whole segments amplified the state past PHI_STOP: they would again
-            n_pass += 1
-            jumped, phi_full = _jump(passes, theta, X0, full, scale, float(0.5 * rr.sum()))
-            stages[-1]["jump"], leap = jumped is not None, phi_full <= PHI_STOP
-            if jumped is not None:
-                (X0, first), length = jumped, full
-                continue
-        longer = _lengthen(passes, X0, length, phi, growth, full)
-        if longer is None:
-            break  # longer segments would amplify the state by more than PHI_STOP: stay here
-        X0, length = longer
+    theta, X0, (H, g, rr, end_S), length, stages, n = _continuation(passes, theta, X0, first, alpha, active, guess,
+                                                                    length, full, growth, tol, update_noise)
+    n_pass += n
     _require_finite(theta, H)
     if mackay:
         alpha = _prior_precisions(H, theta, alpha, active)
