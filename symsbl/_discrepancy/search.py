@@ -68,12 +68,16 @@ def _inverse_mass(model, velocity: str, run) -> float | None:
     else velocity, in ``i``'s equation): ``1/m_i = (1/m_j) a_ij / a_ji``. None when neither applies."""
     direct = _input_coefficient(model, velocity, run.input_names)
     if direct is not None:
-        return direct if direct != 0 else None
+        return direct or None
     singles = [p for p in getattr(run, "pairs", ()) if len(p.velocities) == 1]
     own = next((p for p in singles if p.v == velocity), None)
-    for other in singles:
-        b = None if own is None or other is own else _input_coefficient(model, other.v, run.input_names)
-        for mine, theirs in ((own.x, other.x), (own.v, other.v)) if b else ():
+    if own is None:
+        return None
+    for other in (p for p in singles if p is not own):
+        b = _input_coefficient(model, other.v, run.input_names)
+        if not b:
+            continue
+        for mine, theirs in ((own.x, other.x), (own.v, other.v)):
             a_ij, a_ji = model.equation(velocity).coef(theirs), model.equation(other.v).coef(mine)
             if a_ij * a_ji > 0:
                 return b * a_ij / a_ji

@@ -181,10 +181,9 @@ class Engine:
         shortest over the longest record, read in at most four evenly spaced stretches of
         :data:`SPECTRUM_SAMPLES` / 4 samples (a record that sweeps upwards has its highest frequency late)."""
         r = max(self.records, key=lambda tr: tr.n_samples)
-        n = min(r.n_samples, SPECTRUM_SAMPLES // 4) if r.n_samples > SPECTRUM_SAMPLES else r.n_samples
-        X = np.column_stack([r.column(m) for m in self.measured])
-        windows = [WeakForm().resolve(r.t[a:a + n], X[a:a + n]).window  # 0.5 / f_hi in samples
-                   for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]
+        n = SPECTRUM_SAMPLES // 4 if r.n_samples > SPECTRUM_SAMPLES else r.n_samples
+        windows = [WeakForm().resolve(r.t[a:a + n], np.column_stack([r.column(m)[a:a + n] for m in self.measured]))
+                   .window for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]  # 0.5 / f_hi
         return int(max(64, 8 * min(windows)))
 
     def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,

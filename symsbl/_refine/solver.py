@@ -197,13 +197,14 @@ def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
     return np.where(scale > 0, scale, 1.0)
 
 
-def _carry(passes: Passes, theta, X0, starts: np.ndarray) -> np.ndarray:
-    """Initial states for segments ``starts`` from the current ones: a current segment's own where one starts
-    there (the continuation's lengths are multiples of each other), else the state its simulation reaches."""
+def _resegment(passes: Passes, theta, X0, starts: np.ndarray) -> np.ndarray:
+    """Switch to segments ``starts``; their initial states from the current segments: a current segment's own
+    where one starts there (the continuation's lengths are multiples of each other), else the state its
+    simulation reaches."""
     idx = np.minimum(np.searchsorted(passes.starts, starts), len(passes.starts) - 1)
-    if np.array_equal(passes.starts[idx], starts):
-        return X0[idx]
-    return passes.simulate(theta, X0)[starts]
+    X0 = X0[idx] if np.array_equal(passes.starts[idx], starts) else passes.simulate(theta, X0)[starts]
+    passes.use_segments(starts)
+    return X0
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a whole record that diverges is refused by its non-finite cost
@@ -214,13 +215,12 @@ def _jump(passes: Passes, theta, X0, full: int, scale: np.ndarray, cost: float):
     state-transition growth below :data:`PHI_STOP` (else the segments are restored). Returns whether they
     were kept, the trial ``(starts, X0, pass)`` and the growth over the whole segments."""
     before = passes.starts.copy()
-    starts = passes.segment_starts(full)
-    X0_full = _carry(passes, theta, X0, starts)
-    passes.use_segments(starts)
+    X0_full = _resegment(passes, theta, X0, passes.segment_starts(full))
     trial = passes.sensitivities(theta, X0_full)
     phi = _growth(trial[3], theta.size, scale)
-    allowance = 0.5 * passes.layout["nx"] * (len(before) - len(starts)) + JUMP * cost
+    allowance = 0.5 * passes.layout["nx"] * (len(before) - len(passes.starts)) + JUMP * cost
     kept = bool(np.all(np.isfinite(trial[2])) and 0.5 * trial[2].sum() <= cost + allowance and phi <= PHI_STOP)
+    starts = passes.starts
     if not kept:
         passes.use_segments(before)
     return kept, (starts, X0_full, trial), phi
@@ -237,9 +237,7 @@ def _lengthen(passes: Passes, theta, X0, length: int, phi: float, growth: int, f
     starts = passes.segment_starts(length)
     if np.array_equal(starts, passes.segment_starts(full)):
         length = full  # the same segments (each record's last one runs to its end): the final stage
-    X0 = _carry(passes, theta, X0, starts)
-    passes.use_segments(starts)
-    return X0, length
+    return _resegment(passes, theta, X0, starts), length
 
 
 def _reuse(passes: Passes, X0, trial):
