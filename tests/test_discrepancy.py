@@ -368,6 +368,11 @@ def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
     assert step.error_heldout > 5 * 0.01 and step.residual_ratio > 2  # the linear model is far above the noise
     truth = symsbl.validate_model(report.final, clean_held, method="rk4")
     assert max(truth.nrmse.values()) < 0.01  # the final model re-simulates the clean held-out record within 1 %
+    # the final model keeps the integrator it was fitted with, and validation re-simulates with it
+    fitted = report.final.metadata["refine"]
+    again = symsbl.validate_model(report.final, clean_held, method="rk4", substeps=fitted["substeps"],
+                                  interpolation=fitted["interpolation"])
+    assert again.nrmse == truth.nrmse
     assert report.steps[-1].decision == "nothing missing" and report.steps[-1].residual_ratio < 1.2
 
 
