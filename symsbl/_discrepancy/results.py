@@ -83,7 +83,8 @@ class EffectScore:
         Log-evidence change (nats) of adding the term(s); for a grid effect, of the best grid
         point minus ``log(grid size)``.
     coef, std : float
-        Posterior mean and standard deviation of the (first) term's coefficient after the refit.
+        Posterior mean and standard deviation of the (first) term's coefficient after the refit; for an
+        effect the output-error workflow added, as the final model holds them.
     physical : float or None
         The coefficient as a force per unit term, ``-coef m``, with ``1/m`` the equation's input gain or,
         for a mass the input does not drive, its reciprocity with one that it does (None when neither is

@@ -52,7 +52,7 @@ from .inputs import check_record, parse_base, split_record
 from .locate import effective_fraction, locate
 from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyReport
 from .scoring import Scorer
-from .search import oe_step
+from .search import as_in_final, oe_step
 
 __all__ = ["discrepancy", "Workflow", "EVIDENCE"]
 
@@ -232,6 +232,8 @@ def discrepancy(
     verdict = f"added {', '.join(names_added)}; then {note}" if names_added else note
     initial = steps[0].model if evidence == "output-error" else start
     final = model if evidence == "equation-error" or steps[-1].model_after is not None else steps[-1].model
+    if evidence == "output-error":
+        steps = as_in_final(run, steps, final)
     return DiscrepancyReport(initial, final, tuple(steps), verdict, error, run.noise, evidence)
 
 
