@@ -368,6 +368,9 @@ def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
     assert step.error_heldout > 5 * 0.01 and step.residual_ratio > 2  # the linear model is far above the noise
     truth = symsbl.validate_model(report.final, clean_held, method="rk4")
     assert max(truth.nrmse.values()) < 0.01  # the final model re-simulates the clean held-out record within 1 %
+    # the report gives the final model's coefficient (not the step's refit inside the linear model's fit)
+    (friction,) = [t for t in report.final.equation("v").terms if t.name == "sign(v)"]
+    assert (report.added[0].coef, report.added[0].std) == (friction.coef, friction.std)
     # the final model keeps the integrator it was fitted with, and validation re-simulates with it
     fitted = report.final.metadata["refine"]
     again = symsbl.validate_model(report.final, clean_held, method="rk4", substeps=fitted["substeps"],
