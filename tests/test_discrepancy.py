@@ -535,3 +535,24 @@ def test_cli_lists_the_catalogue_and_reads_user_effects(tmp_path, capsys):
     assert "expected a variable among ['v', 'x']" in capsys.readouterr().err
     assert main(["discrepancy", "--states", "x,v"]) == 2
     assert "DATA: expected a value (or --list-effects alone), received none" in capsys.readouterr().err
+
+
+def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
+    # strongly hardening (the cubic force is 0.7x the linear one at the peak) with Coulomb friction of 3.5 % of the
+    # force: the greedy path passes through look-alikes (a clearance, x|x|, a v x^2 standing in for the friction);
+    # each is replaced or, once the friction is in, removed; the final model is the truth
+    m, c, k, k3, fc = 0.8, 1.5, 5e3, 3e7, 0.4
+    x, v, F = ca.SX.sym("x"), ca.SX.sym("v"), ca.SX.sym("F")
+    system = OdeSystem((x, v), (F,), (v, (F - c * v - k * x - k3 * x**3 - fc * ca.sign(v)) / m), (), (), "hard")
+    recs = [simulate(system, time_grid(duration, 1000.0), method="rk4", substeps=16,
+                     inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed)).with_noise(0.01, seed=seed)
+            for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))]
+    report = discrepancy(recs[0], "x: v; v: F, x, v", heldout=recs[1])
+    assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict
+    assert "removed" in [s.decision.value for s in report.steps], report.verdict
+    truth = {"F": 1 / m, "x": -k / m, "v": -c / m, "x**3": -k3 / m, "sign(v)": -fc / m}
+    eq = report.final.equation("v")
+    assert sorted(eq.names) == sorted(truth), str(report.final)
+    for name, value in truth.items():
+        assert eq.coef(name) == pytest.approx(value, rel=0.01), name
+    assert report.steps[-1].decision == "nothing missing" and report.steps[-1].error_heldout < 0.0105

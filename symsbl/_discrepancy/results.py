@@ -27,6 +27,7 @@ class Decision(str, enum.Enum):
     NO_HELDOUT_GAIN = "no held-out gain"
     UNEXPLAINED = "unexplained"
     REPLACED = "replaced"
+    REMOVED = "removed"
 
     def __str__(self) -> str:
         return self.value
@@ -153,7 +154,8 @@ class DiscrepancyStep:
         When ambiguous: the input under which the two fitted models differ most (``input``, ``scale``,
         ``frequency_hz``, ``difference_noise_std``, ``difference_on_training_input``, ``duration_s``).
     replaces : str or None
-        When replaced: the label of the earlier addition this step's effect takes the place of.
+        When replaced: the label of the earlier addition this step's effect takes the place of; when
+        removed (``added`` None): the label of the earlier addition taken out.
     """
 
     iteration: int

@@ -149,7 +149,7 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
     scorer = run.scorer(model, run.records)
     fitted = scorer.fitted()
     err_train, err_held = run.err(fitted, run.data), run.err(fitted, run.heldout)
-    swap = _revisit(run, it, model, scorer, rule, history)
+    swap = _prune(run, model, scorer, history) or _revisit(run, it, model, scorer, rule, history)
     if swap is not None:
         return DiscrepancyStep(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held,
                                disagreement=run.where(fitted), evidence="output-error",
@@ -258,6 +258,41 @@ def _without(model, names, base) -> object:
     return dataclasses.replace(model, equations=tuple(eqs))
 
 
+def _kept_additions(history) -> list:
+    """The steps whose addition is still in the model and was followed by a later one."""
+    gone = {s.replaces for s in history if s.replaces is not None}
+    return [s for k, s in enumerate(history) if s.added is not None and s.model_after is not None
+            and s.added.label not in gone and any(h.model_after is not None for h in history[k + 1:])]
+
+
+def _prune(run, model, scorer, history) -> dict | None:
+    """An earlier addition that the ones made since have made superfluous, taken out: its terms lose their
+    Bayesian-model-reduction evidence in the current fit, and the refit without them has at least the
+    evidence of the fit with them (a v x^2 term that stood in for a Coulomb force kept 0.2 std of its
+    coefficient once the force was added, and was reported as found)."""
+    fitted = scorer.fitted()
+    base = {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
+    for s in _kept_additions(history):
+        terms = [t for eq in fitted.equations if not eq.fixed for t in eq.terms if t.name in s.added.terms]
+        if not terms or any(t.evidence > 0 for t in terms):
+            continue
+        try:
+            without = run.scorer(_without(model, set(s.added.terms), base), run.records)
+        except SimulationError:
+            continue
+        gain = without.log_evidence - scorer.log_evidence
+        if not (_comparable(without.solution, scorer.solution) and gain >= 0):
+            continue
+        after = without.fitted()
+        error = run.err(after, run.heldout)
+        verdict = (f"removed {s.added.label} (added in iteration {s.iteration}): with the effects added since, "
+                   f"the records are explained as well without it ({gain:+.1f} nats, Bayes factor {_bf_text(gain)} "
+                   f"for removing it); held-out error -> {100 * error:.3g} %")
+        return dict(scores=(), threshold=0.0, null_gains=(), decision=Decision.REMOVED, verdict=verdict,
+                    model_after=after, error_after=error, bayes_factor=_bf(gain), replaces=s.added.label)
+    return None
+
+
 def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
     """An earlier addition reconsidered given the ones made since: its runner-up takes its place when, with
     everything added later, it explains the records better by ``margin_nats`` (greedy choices are made
@@ -265,12 +300,9 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
     while a Coulomb force is missing)."""
     by_label = {c.label: c for c in run.oe_candidates}
     base = {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
-    replaced = {s.replaces for s in history if s.replaces is not None}
-    for k, s in enumerate(history):
-        later = any(h.model_after is not None for h in history[k + 1:])
+    for s in _kept_additions(history):
         r = by_label.get(s.runner_up)
-        if (not later or s.added is None or s.model_after is None or s.replaces is not None or r is None
-                or s.added.label in replaced or r.key in run.added_keys or _present(model, r)):
+        if s.replaces is not None or r is None or r.key in run.added_keys or _present(model, r):
             continue
         try:
             without = run.scorer(_without(model, set(s.added.terms), base), run.records)

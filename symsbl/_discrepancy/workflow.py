@@ -12,7 +12,7 @@ evidence are available:
   the catalogue: :mod:`.candidates`) is scored by the change of the Laplace log evidence; the
   winner is confirmed by cross-validation (:mod:`.confirm`), named when its Bayes factor over the
   runner-up clears ``margin_nats``, and an earlier choice is replaced when, with the effects added
-  since, its runner-up explains the records better;
+  since, its runner-up explains the records better, or removed when they explain it away;
 - **equation error** (:mod:`.decide`): the RVM log evidence of the weak-form rows of the training
   record, with the held-out record as a gate (the first release's rule; for closed-loop plants
   that cannot be simulated open loop, ``error="equation"``).
@@ -101,7 +101,7 @@ def discrepancy(
     derivative="weak",
     error: str = "simulation",
     rule: DecisionRule = DecisionRule(),
-    max_iterations: int = 4,
+    max_iterations: int = 8,
     seed: int = 0,
 ) -> DiscrepancyReport:
     """Find, name and add what the model ``base`` is missing; show the held-out gain.
@@ -146,6 +146,7 @@ def discrepancy(
         When an effect is added: evidence floor, bootstrap calibration, margin over the
         runner-up (and, for equation-error evidence, the held-out improvement).
     max_iterations : int
+        Iterations at most (each adds, replaces or removes one effect, or ends the search).
     seed : int
         Seed of the bootstrap noise.
 
@@ -224,10 +225,12 @@ def discrepancy(
             break
         if step.replaces is not None:
             old = next(s for s in steps if s.added is not None and s.added.label == step.replaces)
-            run.added_keys.discard((old.added.effect, old.added.where))
+            if step.added is not None:  # replaced; an effect removed is not proposed again
+                run.added_keys.discard((old.added.effect, old.added.where))
             names_added.remove(_added_name(old))
-        names_added.append(_added_name(step))
-        run.added_keys.add((step.added.effect, step.added.where))
+        if step.added is not None:  # else removed
+            names_added.append(_added_name(step))
+            run.added_keys.add((step.added.effect, step.added.where))
         model = step.model_after
     verdict = f"added {', '.join(names_added)}; then {note}" if names_added else note
     initial = steps[0].model if evidence == "output-error" else start
