@@ -246,14 +246,7 @@ class DiscrepancyReport:
             lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
                          f"training, {100 * s.error_heldout:.3g} % held out")
             lines.append("where it disagrees: " + s.disagreement.summary)
-            lines.append(f"candidates ({s.evidence} evidence; threshold {s.threshold:.1f} nats; null gains "
-                         + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):")
-            lines.append(f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}")
-            for c in s.scores:
-                err = "-" if c.error_after is None else f"{100 * c.error_after:.3g} %"
-                coef = format_uncertain(c.coef, c.std) if np.isfinite(c.coef) else "-"
-                note = "" if c.admissible else f"  ({c.reason})"
-                lines.append(f"  {c.label:34s} {c.evidence_gain:12.1f} {coef:>22s} {err:>15s}{note}")
+            lines += _candidate_lines(s) if s.scores else []  # a removal scores no candidates
             lines.append("decision: " + s.verdict)
         lines += ["\nmodel after:", _indent(str(self.final))]
         if self.steps:
@@ -263,6 +256,19 @@ class DiscrepancyReport:
                          f"{100 * after:.3g} % after")
         lines.append("verdict: " + self.verdict)
         return "\n".join(lines)
+
+
+def _candidate_lines(s: DiscrepancyStep) -> list[str]:
+    """The table of one step's candidates."""
+    lines = [f"candidates ({s.evidence} evidence; threshold {s.threshold:.1f} nats; null gains "
+             + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):",
+             f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}"]
+    for c in s.scores:
+        err = "-" if c.error_after is None else f"{100 * c.error_after:.3g} %"
+        coef = format_uncertain(c.coef, c.std) if np.isfinite(c.coef) else "-"
+        note = "" if c.admissible else f"  ({c.reason})"
+        lines.append(f"  {c.label:34s} {c.evidence_gain:12.1f} {coef:>22s} {err:>15s}{note}")
+    return lines
 
 
 def _finite(x):
