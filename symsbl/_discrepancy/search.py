@@ -149,7 +149,7 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
     scorer = run.scorer(model, run.records)
     fitted = scorer.fitted()
     err_train, err_held = run.err(fitted, run.data), run.err(fitted, run.heldout)
-    swap = _prune(run, model, scorer, history) or _revisit(run, it, model, scorer, rule, history)
+    swap = _prune(run, model, scorer, fitted, history) or _revisit(run, it, model, scorer, rule, history)
     if swap is not None:
         return DiscrepancyStep(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held,
                                disagreement=run.where(fitted), evidence="output-error",
@@ -258,6 +258,11 @@ def _without(model, names, base) -> object:
     return dataclasses.replace(model, equations=tuple(eqs))
 
 
+def _base_terms(history) -> dict:
+    """The terms of the structure the search started from, per equation (they are never taken out)."""
+    return {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
+
+
 def _kept_additions(history) -> list:
     """The steps whose addition is still in the model and was followed by a later one."""
     gone = {s.replaces for s in history if s.replaces is not None}
@@ -265,13 +270,12 @@ def _kept_additions(history) -> list:
             and s.added.label not in gone and any(h.model_after is not None for h in history[k + 1:])]
 
 
-def _prune(run, model, scorer, history) -> dict | None:
+def _prune(run, model, scorer, fitted, history) -> dict | None:
     """An earlier addition that the ones made since have made superfluous, taken out: its terms lose their
     Bayesian-model-reduction evidence in the current fit, and the refit without them has at least the
     evidence of the fit with them (a v x^2 term that stood in for a Coulomb force kept 0.2 std of its
-    coefficient once the force was added, and was reported as found)."""
-    fitted = scorer.fitted()
-    base = {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
+    coefficient once the force was added, and was reported as found). ``fitted``: ``scorer``'s model."""
+    base = _base_terms(history)
     for s in _kept_additions(history):
         terms = [t for eq in fitted.equations if not eq.fixed for t in eq.terms if t.name in s.added.terms]
         if not terms or any(t.evidence > 0 for t in terms):
@@ -299,7 +303,7 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
     before the effects that confound them are in the model: a clearance can stand in for a cubic spring
     while a Coulomb force is missing)."""
     by_label = {c.label: c for c in run.oe_candidates}
-    base = {eq.lhs: set(eq.names) for eq in history[0].model.equations} if history else {}
+    base = _base_terms(history)
     for s in _kept_additions(history):
         r = by_label.get(s.runner_up)
         if s.replaces is not None or r is None or r.key in run.added_keys or _present(model, r):
@@ -347,9 +351,6 @@ def _bf(log_bf: float) -> float:
 
 def _bf_text(log_bf: float) -> str:
     return f"{math.exp(log_bf):.3g}" if log_bf < 50 else f"e^{log_bf:.0f}"
-
-
-
 
 
 def as_in_final(run, steps, final) -> list:

@@ -145,7 +145,7 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         proposed.append(screened)
         rounds += 1
     meta = refined.metadata["refine"]
-    meta.update(samples=note, interpolation=interpolation, smoothed_sign=smooth, rounds=rounds,
+    meta.update(samples=note, smoothed_sign=smooth, rounds=rounds,
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
@@ -200,8 +200,8 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                                lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide), twins)
             bar.update()
         fraction = residual_fraction(engine, sol)
-    info = {"refine": {
-        "substeps": engine.substeps, "segment_length": int(sol.length), "stages": sol.stages,
+    info = {"refine": {  # to_model adds the substeps and the interpolation
+        "segment_length": int(sol.length), "stages": sol.stages,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
         "effective_fraction": round(fraction, 4)}}
     return to_model(engine, sol, info), screened
