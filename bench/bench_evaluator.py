@@ -17,9 +17,7 @@ import time
 import numpy as np
 import sympy as sp
 
-from symsbl import Evaluator
-from symsbl import paper, polynomial
-from symsbl import symbols
+from symsbl import Evaluator, paper, polynomial, symbols
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _report import timed  # noqa: E402  (bench/ is on sys.path when run as a script)

@@ -30,10 +30,23 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-
 from _report import one_blas_thread, table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
-from symsbl import (Multisine, OdeSystem, Trajectory, compare_to_truth, identify, inputs, paper, polynomial,
-                    simulate, symbols, systems, time_grid, validate_model)
+
+from symsbl import (
+    Multisine,
+    OdeSystem,
+    Trajectory,
+    compare_to_truth,
+    identify,
+    inputs,
+    paper,
+    polynomial,
+    simulate,
+    symbols,
+    systems,
+    time_grid,
+    validate_model,
+)
 
 
 def _oscillator(m, c, k, k3):

@@ -13,7 +13,7 @@ Stages are timed by wrapping the functions that do them (wall time, inclusive):
 - reading and derivatives: the rest of the statistics pass (memory-mapped reads, weak-form
   reduction of the targets and the dictionary);
 - dictionary: :meth:`symsbl.Evaluator.evaluate` (the compiled candidate terms);
-- Gram: the symmetric rank-k update of the regression rows (``symsbl._gram._products``);
+- Gram: the symmetric rank-k update of the regression rows (``symsbl._regression.gram._products``);
 - RVM: the first sparse Bayesian fit of each equation;
 - support search: the evidence-guided local search and parsimony after it;
 - refinement: reading the windows and :func:`symsbl.refine` with its term selection.
@@ -31,11 +31,22 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 import symsbl
-from symsbl import Multisine, identify_stream, open_npz, paper, simulate, symbols, systems
-from symsbl import _evaluator, _gram, _identify, _refine
+from symsbl import (
+    Multisine,
+    _evaluator,
+    _gram,
+    _identify,
+    _refine,
+    identify_stream,
+    open_npz,
+    paper,
+    simulate,
+    symbols,
+    systems,
+)
 from symsbl._scale import stream
 
 FS = 32768

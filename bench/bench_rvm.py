@@ -21,10 +21,10 @@ import argparse
 import itertools
 
 import numpy as np
-
 from _report import one_blas_thread, table, timed_together  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 from symsbl import RVM, GramStats
-from symsbl._sbl import DenseGram
+from symsbl._regression.sbl import DenseGram
 
 TRUE_TERMS = {(0,): 1.0, (1,): -0.5, (0, 2): 2.0, (0, 0, 0): -1.5, (1, 2, 2): 0.8}
 MONOMIALS = [c for deg in range(7) for c in itertools.combinations_with_replacement(range(3), deg)]
@@ -52,7 +52,7 @@ def problem(n, seed, noise=0.01, extra=None):
 class ColumnsOnDemand:
     """The alternative to the full Gram that ``fit(X, y)`` does *not* use, kept here to measure it.
 
-    A column source for the solver (``symsbl._sbl.DenseGram``'s protocol): one pass over ``D``
+    A column source for the solver (``symsbl._regression.sbl.DenseGram``'s protocol): one pass over ``D``
     for ``D^T y`` and the column norms, then each Gram column the solver first asks for, with
     the ``batch - 1`` columns it ranks most likely next, in one pass over ``D`` (block by block,
     OpenBLAS's small-matrix kernel). ``first`` is fetched in the first pass (the bound: the

@@ -18,9 +18,7 @@ import time
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from symsbl import systems
-from symsbl import Sine
-from symsbl import simulate, time_grid
+from symsbl import Sine, simulate, systems, time_grid
 
 sys.path.insert(0, os.path.dirname(__file__))
 import _report  # noqa: E402  (bench/ is on sys.path when run as a script)

@@ -29,14 +29,12 @@ Run: ``PYTHONPATH=. python bench/bench_weakform.py [--part oscillators|paper] [-
 from __future__ import annotations
 
 import argparse
-
-import numpy as np
-
-from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
 from collections import Counter
 
-from symsbl import (Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols,
-                    time_grid)
+import numpy as np
+from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
+
+from symsbl import Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols, time_grid
 from symsbl._demo import CASES
 
 FS, DURATION, NOISE = 4096, 3.0, 0.01

@@ -10,62 +10,69 @@ only public modules are :mod:`symsbl.systems` (ready-made systems) and :mod:`sym
 (figures, optional matplotlib).
 """
 
+from importlib import metadata as _metadata
+
 from . import systems
 
 # -- errors ----------------------------------------------------------------------------------
-from ._errors import (
+from ._base.errors import (
     DataError,
     ExpressionError,
     LibraryError,
     MissingExtraError,
-    RefineWarning,
     ParameterError,
+    RefineWarning,
     SimulationError,
     SymsblError,
 )
 
+# -- the selection rule: which terms are kept, at every stage ------------------------------------
+from ._base.rule import SelectionRule
+
 # -- symbolic terms and candidate libraries ----------------------------------------------------
-from ._symbolic import casadi_to_sympy, symbols, sympy_to_casadi
-from ._library import Library, Term
-from ._terms import custom, elementwise, inputs, paper, polynomial
+from ._symbolic.symbols import casadi_to_sympy, symbols, sympy_to_casadi
+from ._symbolic.library import Library, Term
+from ._symbolic.terms import custom, elementwise, inputs, paper, polynomial
 
 # -- compiled evaluation of a library ----------------------------------------------------------
-from ._evaluator import Evaluator
-
-# -- systems, forcing signals and simulation ---------------------------------------------------
-from ._ode import OdeSystem
-from ._signals import Chirp, FreeDecay, Multisine, Sampled, Signal, Sine
-from ._simulate import simulate, time_grid
+from ._symbolic.evaluator import Evaluator
 
 # -- data: trajectories, files, noise ---------------------------------------------------------
-from ._trajectory import Trajectory, noise_levels
-from ._io import read_trajectory, write_trajectory
+from ._data.trajectory import Trajectory, noise_levels
+from ._data.io import read_trajectory, write_trajectory
+
+# -- systems, forcing signals and simulation ---------------------------------------------------
+from ._simulation.ode import OdeSystem
+from ._simulation.signals import Chirp, FreeDecay, Multisine, Sampled, Signal, Sine
+from ._simulation.simulate import simulate, time_grid
 
 # -- derivatives: regression rows from sampled states -------------------------------------------
-from ._differentiator import Differentiator, Stencil
-from ._differences import CentralDifference, PointDifference, SavitzkyGolay
-from ._weakform import WeakForm
-
-# -- sparse Bayesian regression (equation error) -----------------------------------------------
-from ._gram import GramStats
-from ._rvm import RVM
-from ._regression import RegressionStats, regression_stats
-from ._identify import fit_stats, identify
-
-# -- output-error refinement: fit the trajectories -----------------------------------------------
-from ._refine import refine
+from ._derivatives.differentiator import Differentiator, Stencil
+from ._derivatives.differences import CentralDifference, PointDifference, SavitzkyGolay
+from ._derivatives.weakform import WeakForm
 
 # -- the identified model --------------------------------------------------------------------
 from ._model import Equation, FitMethod, IdentifiedModel, TermEstimate
 
+# -- sparse Bayesian regression (equation error) -----------------------------------------------
+from ._regression.gram import GramStats
+from ._regression.rvm import RVM
+from ._regression.rows import RegressionStats, regression_stats
+from ._regression.fit import fit_stats
+
+# -- output-error refinement: fit the trajectories -----------------------------------------------
+from ._refine import RefineOptions, refine
+
 # -- re-simulation and validation ----------------------------------------------------------
-from ._validate import Validation, nrmse, validate_model
-from ._truth import TruthComparison, compare_to_truth
+from ._validate.validate import Validation, nrmse, validate_model
+from ._validate.truth import TruthComparison, compare_to_truth
+
+# -- identification: equation error, then output error (the main entry point) ------------------
+from ._identify import identify
 
 # -- discrepancy workflow: what is the model missing? ------------------------------------------
 from ._discrepancy import (
     CATALOGUE,
-    Variant,
     Decision,
     DecisionRule,
     Disagreement,
@@ -73,6 +80,7 @@ from ._discrepancy import (
     DiscrepancyStep,
     Effect,
     EffectScore,
+    Variant,
     catalogue,
     discrepancy,
     parse_base,
@@ -96,9 +104,12 @@ from ._scale import (
 from ._demo import DemoResult, run_demo
 
 # -- progress lines --------------------------------------------------------------------------
-from ._progress import progress_enabled, set_progress
+from ._base.progress import progress_enabled, set_progress
 
-__version__ = "0.2.0"
+try:  # the one version source is the installed distribution's metadata (pyproject.toml)
+    __version__ = _metadata.version("symsbl")
+except _metadata.PackageNotFoundError:  # imported from a source tree that was never installed
+    __version__ = "0+unknown"
 
 __all__ = [
     # errors
@@ -115,8 +126,10 @@ __all__ = [
     "Trajectory", "noise_levels", "read_trajectory", "write_trajectory",
     # derivatives
     "Differentiator", "Stencil", "PointDifference", "CentralDifference", "SavitzkyGolay", "WeakForm",
+    # the selection rule
+    "SelectionRule",
     # regression and identification
-    "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify", "refine",
+    "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify", "RefineOptions", "refine",
     # the model
     "TermEstimate", "Equation", "IdentifiedModel", "FitMethod",
     # validation

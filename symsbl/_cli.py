@@ -15,8 +15,9 @@ import runpy
 import sys
 from pathlib import Path
 
-from ._errors import DataError, LibraryError, ParameterError, SymsblError, expected
-from ._outcome import EXIT_CODES, fail as _fail, run_command
+from ._base.errors import DataError, LibraryError, ParameterError, SymsblError, expected
+from ._outcome import EXIT_CODES, run_command
+from ._outcome import fail as _fail
 from ._refine.problem import INTERPOLATIONS
 
 __all__ = ["main", "build_parser", "EXIT_CODES"]
@@ -38,7 +39,7 @@ def _names(text: str | None) -> list[str]:
 
 def _run_library_file(path: Path, states, inputs):
     """Run a library file (its Python runs, by design) and return its ``library``."""
-    from ._library import Library
+    from ._symbolic.library import Library
 
     try:
         namespace = runpy.run_path(str(path))
@@ -65,7 +66,7 @@ def _run_library_file(path: Path, states, inputs):
 
 
 def _library(spec: str, states, inputs, degree: int):
-    from ._terms import paper, polynomial
+    from ._symbolic.terms import paper, polynomial
 
     if degree < 1:
         raise LibraryError(expected("--degree", "an integer >= 1", degree))
@@ -82,7 +83,7 @@ def _library(spec: str, states, inputs, degree: int):
 
 def _outputs(args, inputs: list) -> None:
     """Check every output option before the work starts."""
-    from ._outputs import safe_output
+    from ._base.outputs import safe_output
 
     if getattr(args, "json", None):
         safe_output(args.json, inputs, what="--json")
@@ -102,14 +103,14 @@ def _outputs(args, inputs: list) -> None:
 
 
 def _write_json(path, doc: dict) -> None:
-    from ._outputs import write_atomic
+    from ._base.outputs import write_atomic
 
     text = json.dumps(doc, indent=2, default=float) + "\n"
     write_atomic(path, lambda fh: fh.write(text), binary=False)
 
 
 def _save_figure(fig, path) -> None:
-    from ._outputs import write_atomic
+    from ._base.outputs import write_atomic
 
     suffix = Path(path).suffix
     write_atomic(path, lambda fh: fig.savefig(fh, dpi=120, format=suffix[1:]), suffix=suffix)
@@ -117,7 +118,7 @@ def _save_figure(fig, path) -> None:
 
 def _read(args, path, states, inputs, *, optional=()):
     """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing."""
-    from ._io import read_columns, read_trajectory
+    from ._data.io import read_columns, read_trajectory
 
     time = None if args.time == "" else args.time
     if optional:
@@ -144,7 +145,7 @@ def _read(args, path, states, inputs, *, optional=()):
 def _unmeasured_allowed(states, kinematics) -> tuple:
     """States a record may lack once kinematic pairs are declared: the velocities, and any other state
     (latent: its law is identified from the measured ones, see :mod:`symsbl._latent`)."""
-    from ._kinematics import parse_kinematics
+    from ._derivatives.kinematics import parse_kinematics
 
     if not kinematics:
         return ()
@@ -153,10 +154,10 @@ def _unmeasured_allowed(states, kinematics) -> tuple:
 
 
 def _cmd_identify(args) -> int:
+    from ._base.checks import integer
+    from ._derivatives.weakform import WeakForm
     from ._identify import identify
-    from ._checks import integer
-    from ._weakform import WeakForm
-    from ._symbolic import symbols
+    from ._symbolic.symbols import symbols
 
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.library if str(args.library).endswith(".py") else None])
@@ -195,7 +196,7 @@ def _latent_summary(info: dict) -> str:
 
 def _cmd_validate(args) -> int:
     from ._model import IdentifiedModel
-    from ._validate import validate_model
+    from ._validate.validate import validate_model
 
     _outputs(args, [args.model, args.data])
     model = IdentifiedModel.load(args.model)
@@ -232,7 +233,7 @@ def _cmd_discrepancy(args) -> int:
             raise DataError(expected(name, "a value (or --list-effects alone)", "none", raw=True))
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.held_out, args.effects])
-    from ._kinematics import parse_kinematics
+    from ._derivatives.kinematics import parse_kinematics
 
     velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
     traj = _read(args, args.data, states, inputs, optional=velocities)  # displacement only: velocities estimated
@@ -277,7 +278,7 @@ def _data_options(p, *, states: bool = True, optional: bool = False) -> None:
 
 
 def _add_identify(sub, common) -> None:
-    from ._derivatives import DIFFERENTIATORS
+    from ._derivatives.registry import DIFFERENTIATORS
 
     p = sub.add_parser("identify", parents=[common], help="identify equations of motion from a data file")
     _data_options(p)
@@ -344,10 +345,21 @@ def _add_discrepancy(sub, common) -> None:
     p.set_defaults(func=_cmd_discrepancy)
 
 
+def _version() -> str:
+    """The installed distribution's version (the one version source: pyproject.toml)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("symsbl")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``symsbl`` command."""
     parser = _Parser(prog="symsbl", description="Sparse Bayesian identification of nonlinear ODEs from sampled data.",
                      epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()))
+    parser.add_argument("--version", action="version", version=f"symsbl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--quiet", action="store_true",

@@ -13,15 +13,15 @@ import time
 from dataclasses import dataclass
 
 from . import systems
-from ._checks import choice
+from ._base.checks import choice
+from ._data.trajectory import Trajectory
 from ._identify import identify
 from ._refine import refine_or_keep
-from ._signals import Multisine, Sine
-from ._simulate import simulate, time_grid
-from ._terms import paper
-from ._trajectory import Trajectory
-from ._truth import TruthComparison, compare_to_truth
-from ._validate import Validation, validate_model
+from ._simulation.signals import Multisine, Sine
+from ._simulation.simulate import simulate, time_grid
+from ._symbolic.terms import paper
+from ._validate.truth import TruthComparison, compare_to_truth
+from ._validate.validate import Validation, validate_model
 
 __all__ = ["CASES", "DemoResult", "run_case", "run_demo", "write_figures"]
 

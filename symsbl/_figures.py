@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._errors import MissingExtraError, expected
-from ._format import pretty
-from ._trajectory import Trajectory
+from ._base.errors import MissingExtraError, expected
+from ._base.format import pretty
+from ._data.trajectory import Trajectory
 
 __all__ = ["new_figure", "term_label", "forcing_window", "MEASURED", "MODEL", "BAND", "PRIOR", "POSTERIOR",
            "BEFORE", "AFTER", "MATPLOTLIB_MISSING", "require_matplotlib"]

@@ -2,7 +2,7 @@
 
 Every failure is one line, ``symsbl <command>: error: <what>``; warnings are one line each, like errors.
 After Ctrl-C the one line is ``interrupted`` (exit 130), even where a library on the way turned the
-interrupt into another error or swallowed it (:func:`symsbl._interrupt.sigint_recorded`): the interrupt
+interrupt into another error or swallowed it (:func:`symsbl._base.interrupt.sigint_recorded`): the interrupt
 is raised again every :data:`REPEAT_SECONDS` while the command still runs.
 """
 
@@ -13,9 +13,9 @@ import os
 import sys
 import warnings
 
-from ._errors import MissingExtraError, SymsblError
-from ._interrupt import interrupt_handled, sigint_recorded
-from ._progress import progress_enabled
+from ._base.errors import MissingExtraError, SymsblError
+from ._base.interrupt import interrupt_handled, sigint_recorded
+from ._base.progress import progress_enabled
 
 __all__ = ["EXIT_CODES", "REPEAT_SECONDS", "fail", "run_command"]
 

@@ -23,13 +23,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._base.errors import DataError, ParameterError, expected
+from ._base.format import format_uncertain
+from ._data.trajectory import Trajectory
 from ._discrepancy.figures import discrepancy_figure
-from ._errors import DataError, ParameterError, expected
 from ._figures import BAND, MEASURED, MODEL, POSTERIOR, PRIOR, forcing_window, new_figure, term_label
-from ._format import format_uncertain
 from ._model import Equation, IdentifiedModel
-from ._trajectory import Trajectory
-from ._validate import Validation
+from ._validate.validate import Validation
 
 __all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "term_label", "forcing_window"]
 

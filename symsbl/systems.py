@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import casadi as ca
 
-from ._errors import SimulationError, expected
-from ._ode import OdeSystem
+from ._base.errors import SimulationError, expected
+from ._simulation.ode import OdeSystem
 
 __all__ = ["linear", "quadratic_damping", "duffing", "coulomb", "bouc_wen", "lorenz"]
 

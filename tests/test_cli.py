@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import numpy as np
-
 import pytest
 
 from symsbl import Multisine, simulate, systems, time_grid, write_trajectory

@@ -9,7 +9,7 @@ import scipy.io
 from helpers import exactly
 
 from symsbl import DataError, Trajectory, read_trajectory, write_trajectory
-from symsbl._trajectory import validate
+from symsbl._data.trajectory import validate
 
 EMPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "EMPS" / "DATA_EMPS.mat"
 

@@ -5,7 +5,7 @@ import pytest
 from helpers import exactly
 
 from symsbl import DataError, ParameterError
-from symsbl._derivatives import (
+from symsbl._derivatives.registry import (
     CentralDifference,
     PointDifference,
     SavitzkyGolay,

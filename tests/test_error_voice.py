@@ -1,8 +1,8 @@
 """One error voice: every error a user can trigger is a SymsblError worded "name: expected ..., received ...".
 
 The test walks every ``raise`` statement of the package: the exception raised must be one of the
-:mod:`symsbl._errors` classes (or a re-raise), and its message must come from
-:func:`symsbl._errors.expected` or read "...: expected ..., received ...".
+:mod:`symsbl._base.errors` classes (or a re-raise), and its message must come from
+:func:`symsbl._base.errors.expected` or read "...: expected ..., received ...".
 """
 
 import ast
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import symsbl
-from symsbl import _errors
+from symsbl._base import errors as _errors
 
 PACKAGE = Path(symsbl.__file__).parent
 ERROR_CLASSES = {name for name, obj in vars(_errors).items()
@@ -54,9 +54,9 @@ def test_every_raise_is_a_symsbl_error_in_one_wording():
         if isinstance(func, ast.Call) and getattr(func.func, "id", None) == "type":
             name = "type"
         if isinstance(func, ast.Attribute) and func.attr == "error" and ast.unparse(func.value) == "self":
-            continue  # the parser's error builder writes the voice itself (symsbl._parse)
+            continue  # the parser's error builder writes the voice itself (symsbl._symbolic.parse)
         if name == "KeyboardInterrupt":
-            continue  # a Ctrl-C passed on (symsbl._casadi.interrupts_kept), not an error
+            continue  # a Ctrl-C passed on (symsbl._base.casadi.interrupts_kept), not an error
         if name not in ERROR_CLASSES and name not in ERROR_VARIABLES:
             bad.append(f"{path}:{node.lineno}: raises {ast.unparse(exc)[:60]}")
         elif call is not None and not _message_ok(call):

@@ -10,8 +10,8 @@ from helpers import exactly
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import symsbl._jit as jit_module
-import symsbl._evaluator as evaluator_module
+import symsbl._base.jit as jit_module
+import symsbl._symbolic.evaluator as evaluator_module
 from symsbl import Evaluator, LibraryError, paper, polynomial, symbols
 
 X1, X2, X3, F = symbols("x1 x2 x3 F")

@@ -21,8 +21,8 @@ from symsbl import (
     systems,
     time_grid,
 )
+from symsbl._base.rule import complexity
 from symsbl._demo import CASES, run_case
-from symsbl._selection import complexity
 
 SEEDS = range(5)
 

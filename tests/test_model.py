@@ -4,12 +4,11 @@ import json
 
 import casadi as ca
 import numpy as np
-
-import symsbl
 import pytest
 import sympy as sp
 from helpers import exactly
 
+import symsbl
 from symsbl import (
     DataError,
     Equation,
@@ -22,7 +21,7 @@ from symsbl import (
     time_grid,
     validate_model,
 )
-from symsbl._format import format_uncertain
+from symsbl._base.format import format_uncertain
 
 
 @pytest.fixture(scope="module")
@@ -219,7 +218,7 @@ def test_a_bad_number_of_band_draws_is_named(duffing, n_band):
 
 def test_the_batched_band_equals_one_simulation_per_draw(duffing, duffing_heldout):
     """All Monte Carlo draws in one compiled call give the band of one simulation per draw."""
-    from symsbl._validate import _band, _band_loop, _draws
+    from symsbl._validate.validate import _band, _band_loop, _draws
 
     _, _, model = duffing
     system = model.to_system()

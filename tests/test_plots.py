@@ -17,8 +17,8 @@ from symsbl import (
     DataError,  # noqa: E402
     plots,  # noqa: E402
 )
+from symsbl._base.format import format_uncertain  # noqa: E402
 from symsbl._figures import AFTER  # noqa: E402
-from symsbl._format import format_uncertain  # noqa: E402
 
 FS = 4096.0
 

@@ -10,10 +10,10 @@ import pytest
 from helpers import exactly
 
 import symsbl
-import symsbl._progress as progress
+import symsbl._base.progress as progress
 from symsbl import Sine, discrepancy, simulate, symbols, systems, time_grid
+from symsbl._base.progress import Progress, progress_enabled, set_progress
 from symsbl._cli import main
-from symsbl._progress import Progress, progress_enabled, set_progress
 
 
 class Terminal(io.StringIO):
@@ -177,7 +177,7 @@ def test_a_long_cvodes_run_in_segments_matches_one_call(monkeypatch):
     """Progress comes from segmenting long cvodes runs; the segments must not change the answer."""
     t = time_grid(0.5, 8192)
     whole = simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0))
-    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 1000)  # 5 segments
+    monkeypatch.setattr(sys.modules["symsbl._simulation.cvodes"], "CVODES_SEGMENT", 1000)  # 5 segments
     parts = simulate(systems.duffing(), t, inputs=Sine(100.0, 10.0))
     scale = abs(whole.states).max(axis=0)
     assert (abs(parts.states - whole.states).max(axis=0) / scale).max() < 1e-7
@@ -190,7 +190,7 @@ def test_cvodes_segments_follow_a_measured_grid_with_jitter(monkeypatch):
     decay = symsbl.OdeSystem((x,), (), (-5 * x,), name="decay")
     h = 1e-3
     t = np.concatenate([[0.0], np.cumsum(np.r_[np.full(1000, h * (1 + 8e-4)), np.full(1000, h * (1 - 8e-4))])])
-    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 1000)
+    monkeypatch.setattr(sys.modules["symsbl._simulation.cvodes"], "CVODES_SEGMENT", 1000)
     traj = simulate(decay, t, x0=[1.0], method="cvodes")
     assert np.max(np.abs(traj.states[:, 0] - np.exp(-5 * t))) < 1e-8
 
@@ -200,7 +200,7 @@ def test_a_cvodes_failure_in_a_later_segment_reports_its_absolute_time(monkeypat
     the tenth segment and must be reported near t = 1, not near the segment's own start."""
     (x,) = symbols("x")
     blowup = symsbl.OdeSystem((x,), (), (x**2,), name="blowup")
-    monkeypatch.setattr(sys.modules["symsbl._cvodes"], "CVODES_SEGMENT", 100)
+    monkeypatch.setattr(sys.modules["symsbl._simulation.cvodes"], "CVODES_SEGMENT", 100)
     traj = simulate(blowup, np.linspace(0.0, 1.5, 1501), x0=[1.0], method="cvodes", on_divergence="truncate")
     assert 0.99 < traj.diverged_at <= 1.0
     good = traj.t < 0.99

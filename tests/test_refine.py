@@ -597,7 +597,8 @@ def test_only_a_sign_whose_term_jumps_is_smoothed_and_counted_as_stiffness():
     and a Coulomb term's stiffness is exactly ``|coef| / eps``."""
     import sympy as sp
 
-    from symsbl._refine.engine import Engine, Settings, sign_jumps
+    from symsbl._refine.engine import Engine, Settings
+    from symsbl._refine.smoothing import sign_jumps
 
     x, v = sp.symbols("x1 x2")
     assert sign_jumps(sp.sign(v)) == ((sp.sign(v), 1),)

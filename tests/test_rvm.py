@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from symsbl import RVM, DataError, GramStats, ParameterError
-from symsbl._sbl import DenseGram, posterior, solve
+from symsbl._regression.sbl import DenseGram, posterior, solve
 
 MONOMIALS = [c for deg in range(7) for c in itertools.combinations_with_replacement(range(3), deg)]
 TRUE = {(0,): 1.0, (1,): -0.5, (0, 2): 2.0, (0, 0, 0): -1.5, (1, 2, 2): 0.8}

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from symsbl import LibraryError, paper
-from symsbl._symbolic import casadi_to_sympy, is_smooth, symbols, sympy_to_casadi
+from symsbl._symbolic.symbols import casadi_to_sympy, is_smooth, symbols, sympy_to_casadi
 
 X1, X2, X3, F = symbols("x1 x2 x3 F")
 S1, S2, S3, SF = sp.symbols("x1 x2 x3 F", real=True)

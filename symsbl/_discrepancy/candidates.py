@@ -11,13 +11,13 @@ the pair's states up to degree three, absolute values, an offset) are the search
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
-from .._symbolic import casadi_to_sympy
+from .._base.rule import multiplicity
+from .._symbolic.symbols import casadi_to_sympy
 from .catalogue import Effect
 
 __all__ = ["Candidate", "Pair", "pairs_of", "catalogue_candidates", "library_candidates", "reshaped", "term_name"]
@@ -122,7 +122,7 @@ def catalogue_candidates(effects, pairs: list[Pair], symbols: dict, records) -> 
         v_amp = _amplitude(pair.v_expr, symbols, records)
         for effect in effects:
             variants = effect.variants(pair.x_expr, pair.v_expr, x_amp, v_amp)
-            penalty = math.log(len(variants)) if len(variants) > 1 else 0.0
+            penalty = multiplicity(len(variants))
             for w in variants:
                 label = w.label if len(pairs) == 1 else f"{w.label} [{pair.where}]"
                 out.append(Candidate(effect, label, pair, tuple((s, w.exprs) for s in pair.velocities), w.shape,
@@ -151,7 +151,7 @@ def library_candidates(pairs: list[Pair], taken: set) -> list[Candidate]:
     out = []
     for pair in (p for p in pairs if len(p.velocities) == 1):
         terms = [e for e in _library_terms(pair.x_expr, pair.v_expr) if term_name(e) not in taken]
-        penalty = math.log(max(len(terms), 2))
+        penalty = multiplicity(max(len(terms), 2))
         for e in terms:
             out.append(Candidate(None, term_name(e), pair, ((pair.v, (e,)),), None, penalty))
     return out

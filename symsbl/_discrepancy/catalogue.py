@@ -33,7 +33,7 @@ from typing import Callable, Sequence
 
 import casadi as ca
 
-from .._errors import LibraryError, expected
+from .._base.errors import LibraryError, expected
 
 __all__ = ["Effect", "Variant", "CATALOGUE", "catalogue", "get_effect"]
 

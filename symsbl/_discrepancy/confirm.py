@@ -24,11 +24,11 @@ import math
 
 import numpy as np
 
-from .._errors import SimulationError
+from .._base.errors import SimulationError
 from .._refine.engine import Engine
 from .._refine.solver import lm
-from .._signals import Sampled, Sine
-from .._simulate import simulate
+from .._simulation.signals import Sampled, Sine
+from .._simulation.simulate import simulate
 
 __all__ = ["folds", "predictive_log_likelihood", "cross_validated_gain", "separating_experiment"]
 

@@ -15,12 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._checks import integer, number
-from .._errors import SimulationError
-from .._progress import Progress
-from .._signals import Sampled
-from .._simulate import simulate
-from .._trajectory import Trajectory
+from .._base.checks import integer, number
+from .._base.errors import SimulationError
+from .._base.progress import Progress
+from .._base.rule import DEFAULT as DEFAULT_RULE
+from .._base.rule import multiplicity
+from .._data.trajectory import Trajectory
+from .._simulation.signals import Sampled
+from .._simulation.simulate import simulate
 from .catalogue import Effect
 from .locate import locate
 from .results import Decision, DiscrepancyStep, EffectScore
@@ -55,13 +57,13 @@ class DecisionRule:
     >>> symsbl.DecisionRule(min_improvement=2.0)
     Traceback (most recent call last):
     ...
-    symsbl._errors.ParameterError: min_improvement: expected a finite number in [0.0, 1.0], received 2.0
+    symsbl.ParameterError: min_improvement: expected a finite number in [0.0, 1.0], received 2.0
     """
 
     floor_nats: float = 8.0
     n_bootstrap: int = 2
     bootstrap_factor: float = 2.0
-    margin_nats: float = 3.0
+    margin_nats: float = DEFAULT_RULE.margin_nats
     min_improvement: float = 0.1
 
     def __post_init__(self):
@@ -94,7 +96,7 @@ def best_per_effect(scored) -> dict[str, tuple]:
     """Per effect, its best variant with the grid penalty ``log(len(grid))`` applied."""
     best: dict[str, tuple] = {}
     for variant, gain, fit, cols in scored:
-        penalty = math.log(len(variant.effect.grid)) if variant.effect.grid else 0.0
+        penalty = multiplicity(len(variant.effect.grid)) if variant.effect.grid else 0.0
         entry = (variant, gain - penalty, fit, cols)
         if variant.effect.name not in best or entry[1] > best[variant.effect.name][1]:
             best[variant.effect.name] = entry

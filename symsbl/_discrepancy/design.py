@@ -7,13 +7,13 @@ import math
 
 import numpy as np
 
-from .._library import Library
+from .._data.trajectory import Trajectory
 from .._model import Equation, IdentifiedModel
-from .._regression import regression_stats
-from .._rvm import RVM
-from .._selection import subset_stats
-from .._trajectory import Trajectory
-from .._validate import validate_model
+from .._regression.rows import regression_stats
+from .._regression.rvm import RVM
+from .._regression.support import subset_stats
+from .._symbolic.library import Library
+from .._validate.validate import validate_model
 
 __all__ = ["Design", "heldout_error", "ERROR_MEASURES"]
 
@@ -33,7 +33,7 @@ class Design:
         self.library = Library(exprs, variables)
         self.derivative = derivative
         self._stats: dict[int, object] = {}
-        #: Effective-sample fraction of the rows (1 for independent residuals), see :func:`~symsbl._discrepancy.locate.effective_fraction`.
+        #: Effective-sample fraction of the rows (1 for independent residuals), see :func:`~symsbl._data.residuals.effective_fraction`.
         self.weight = 1.0
 
     def column(self, expr) -> int | None:

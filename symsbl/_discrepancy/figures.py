@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._errors import DataError, expected
+from .._base.errors import DataError, expected
+from .._data.trajectory import Trajectory
 from .._figures import AFTER, BEFORE, forcing_window, new_figure
 from .._model import IdentifiedModel
-from .._trajectory import Trajectory
-from .._validate import validate_model
+from .._validate.validate import validate_model
 from .results import DiscrepancyReport
 
 __all__ = ["discrepancy_figure"]

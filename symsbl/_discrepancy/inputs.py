@@ -7,10 +7,11 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
-from .._errors import DataError, ExpressionError, LibraryError, expected
-from .._parse import parse_expression
-from .._symbolic import casadi_to_sympy
-from .._trajectory import Trajectory
+from .._base.errors import DataError, ExpressionError, LibraryError, expected
+from .._data.trajectory import Trajectory
+from .._symbolic.parse import parse_expression
+from .._symbolic.symbols import casadi_to_sympy
+from .catalogue import Effect
 
 __all__ = ["parse_base", "read_effects", "describe_effects", "position_record", "split_record", "check_record"]
 
@@ -88,7 +89,6 @@ def read_effects(path) -> tuple:
     import re
     from pathlib import Path
 
-    from .catalogue import Effect
 
     try:
         lines = Path(path).read_text().splitlines()

@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 
-from .._evaluator import Evaluator
-from .._library import Library
-from .._validate import validate_model
+from .._data.residuals import effective_fraction
+from .._symbolic.evaluator import Evaluator
+from .._symbolic.library import Library
+from .._validate.validate import validate_model
 from .results import Disagreement
 
-__all__ = ["locate", "effective_fraction"]
+__all__ = ["locate"]
 
 
 def locate(model, train, heldout, design, displacement, velocity, measure, measured=None) -> Disagreement:
@@ -71,15 +72,3 @@ def locate(model, train, heldout, design, displacement, velocity, measure, measu
         words.append(f"held-out simulation error largest near t = {mids[i]:.3g} s ({100 * err[i]:.3g} %)")
     return Disagreement(residual_nrmse, effective_fraction(r), regions, jump, float(jump_z), (edges_x, edges_v, mean_map),
                         (np.array(mids), np.array(err)), "; ".join(words))
-
-
-def effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
-    """``N_eff / N = 1 / (1 + 2 sum_j rho_j)`` from the autocorrelation of the residual rows ``r``."""
-    r = r - r.mean()
-    c0, total = float(r @ r), 0.0
-    for j in range(1, min(max_lag, len(r) - 1)):
-        rho = float(r[:-j] @ r[j:]) / c0
-        if abs(rho) < 0.05:
-            break
-        total += rho
-    return float(min(1.0, 1.0 / max(1.0 + 2.0 * total, 1.0)))

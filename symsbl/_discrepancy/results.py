@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._format import format_uncertain
+from .._base.format import format_uncertain
 from .._model import IdentifiedModel
 
 __all__ = [

@@ -22,15 +22,16 @@ import functools
 
 import numpy as np
 
-from .._errors import SimulationError
+from .._base.errors import SimulationError
+from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
 from .._refine.candidates import prior
-from .._refine.engine import Engine, Settings, residual_fraction, to_model
+from .._refine.engine import Engine, Settings, residual_fraction
 from .._refine.problem import window_plan
+from .._refine.result import to_model
 from .._refine.screen import _reduced
-from .._signals import Sampled
-from .._simulate import simulate
-from .._trajectory import Trajectory
+from .._simulation.signals import Sampled
+from .._simulation.simulate import simulate
 
 __all__ = ["Scorer", "block_gain", "SCREEN_SAMPLES", "REFITS"]
 

@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from .._errors import SimulationError
-from .._progress import Progress
+from .._base.errors import SimulationError
+from .._base.progress import Progress
 from .candidates import reshaped, term_name
 from .confirm import cross_validated_gain, separating_experiment
 from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyStep, EffectScore

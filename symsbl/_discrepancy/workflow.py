@@ -36,20 +36,21 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
-from .._checks import choice, integer
-from .._derivatives import get_differentiator
-from .._errors import DataError, LibraryError, expected
-from .._kinematics import complete_states, parse_kinematics, with_velocities
+from .._base.checks import choice, integer
+from .._base.errors import DataError, LibraryError, expected
+from .._data.residuals import effective_fraction
+from .._data.trajectory import Trajectory, noise_levels
+from .._derivatives.kinematics import complete_states, parse_kinematics, with_velocities
+from .._derivatives.registry import get_differentiator
 from .._model import Equation
 from .._refine.engine import Settings
-from .._symbolic import casadi_to_sympy
-from .._trajectory import Trajectory, noise_levels
+from .._symbolic.symbols import casadi_to_sympy
 from .candidates import catalogue_candidates, library_candidates, pairs_of
 from .catalogue import CATALOGUE, Effect
 from .decide import DecisionRule, decide
 from .design import ERROR_MEASURES, Design, heldout_error
 from .inputs import check_record, parse_base, split_record
-from .locate import effective_fraction, locate
+from .locate import locate
 from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyReport
 from .scoring import Scorer
 from .search import as_in_final, oe_step
@@ -128,7 +129,7 @@ def discrepancy(
         (default: every base equation ``x: v``); effects of the relative motion of two coupled pairs
         are candidates too. A velocity of a pair that ``data`` and ``heldout`` do not hold is unmeasured
         (displacement only): it is estimated from its position for the equation-error start
-        (:func:`symsbl._kinematics.estimate_velocity`) and the output error fits the measured states alone.
+        (:func:`symsbl._derivatives.kinematics.estimate_velocity`) and the output error fits the measured states alone.
     evidence : {"output-error", "equation-error"}, optional
         How effects are scored: the Laplace evidence of the output-error fit of every record
         (default with ``error="simulation"``), or the RVM evidence of the weak-form equation error of

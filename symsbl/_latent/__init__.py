@@ -32,9 +32,10 @@ import warnings
 
 import numpy as np
 
-from .._errors import DataError, SimulationError, expected
-from .._library import Library, Term
+from .._base.errors import DataError, SimulationError, expected
 from .._model import IdentifiedModel
+from .._refine import refine
+from .._symbolic.library import Library, Term
 from .branches import Branches, Screened
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
@@ -117,7 +118,6 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     options = {"interpolation": "periodic" if periodic else "cubic", "substeps": substeps, **(refine_options or {})}
     data = record.slice(periods.start)
     fits, caught = {}, {}
-    from .._refine import refine
 
     candidates = stages.candidates(library.variables)
     failed = {}

@@ -21,8 +21,10 @@ import casadi as ca
 import numpy as np
 import sympy as sp
 
-from .._library import Library
+from .._base.rule import DEFAULT as DEFAULT_RULE
+from .._base.rule import SelectionRule
 from .._model import Equation, IdentifiedModel, TermEstimate
+from .._symbolic.library import Library
 from .periodic import Spectra
 from .skeleton import Skeleton
 
@@ -126,11 +128,11 @@ class Branches:
                 return False
         return True
 
-    def verdict(self, fits: dict, n_samples: int, n_candidates: int):
+    def verdict(self, fits: dict, n_samples: int, n_candidates: int, rule: SelectionRule = DEFAULT_RULE):
         """``(verdict, best branch, log evidence by branch)`` of the refined branches (a branch whose refinement
         diverged is absent from ``fits``)."""
         scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
-        penalty = 0.5 * math.log(n_samples) + math.log(max(n_candidates, 2))
+        penalty = rule.nats_per_term(n_samples, n_candidates)
         visible = max((k for k in ("linear", "memoryless") if k in fits), key=scores.get, default=None)
         if visible == "memoryless" and len(fits["memoryless"].equation(self.v).terms) <= 3 and "linear" in fits:
             visible = "linear"  # its selection removed every force term

@@ -22,10 +22,10 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
-from .._gram import GramStats
-from .._evaluator import Evaluator
-from .._library import Library, Term
-from .._rvm import RVM
+from .._regression.gram import GramStats
+from .._regression.rvm import RVM
+from .._symbolic.evaluator import Evaluator
+from .._symbolic.library import Library, Term
 from .periodic import Spectra, raised_cosine
 
 __all__ = ["homogeneous_terms", "WeakForm", "screen", "evaluate"]

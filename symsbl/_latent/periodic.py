@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._errors import DataError, expected
-from .._trajectory import third_difference_std
+from .._base.errors import DataError, expected
+from .._data.trajectory import third_difference_std
 
 __all__ = ["Periods", "Spectra", "split_periods", "whole_record", "raised_cosine", "REPEAT_TOL", "MIN_PERIODS"]
 

@@ -22,27 +22,28 @@ error of the *measured* states, each weighted by its own noise level, on one or 
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import warnings
 
 import numpy as np
 
-from .._checks import choice, integer
-from .._errors import ParameterError, RefineWarning, SimulationError, expected
-from .._library import Library
+from .._base.errors import ParameterError, RefineWarning, SimulationError, expected
+from .._base.progress import Progress, stopwatch
+from .._base.rule import DEFAULT as DEFAULT_RULE
+from .._base.rule import SelectionRule
+from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
-from .._progress import Progress
-from .._trajectory import Trajectory
-from .candidates import Rebased, candidates as propose, extend, prior
-from .engine import Engine, Settings, design_rows, residual_fraction, state_guess, stopwatch, to_model
-from .problem import INTERPOLATIONS, check_records, window_plan
+from .._symbolic.library import Library
+from .candidates import Rebased, extend, prior
+from .candidates import candidates as propose
+from .engine import Engine, Settings, residual_fraction
+from .options import MAX_SAMPLES, RefineOptions, as_options
+from .problem import check_records, window_plan
+from .result import to_model
+from .rows import design_rows, state_guess
 from .screen import screen_terms
-from .selection import penalty, select as select_terms
+from .selection import select as select_terms
 
-__all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
-
-#: Samples refined on at most (2^18: 8 s at 32768 Hz); longer data contribute evenly spaced windows.
-MAX_SAMPLES = 2**18
+__all__ = ["refine", "refine_or_keep", "MAX_SAMPLES", "RefineOptions"]
 
 
 def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajectory], str]:
@@ -53,7 +54,8 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
 
 def refine(model: IdentifiedModel, data, *, measured=None, library: Library | None = None, select: bool = True,
            interpolation: str = "cubic", substeps="auto", smooth: bool = True, max_samples: int = MAX_SAMPLES,
-           jit="auto") -> IdentifiedModel:
+           jit="auto", options: RefineOptions | None = None, selection: SelectionRule | None = None
+           ) -> IdentifiedModel:
     """Re-estimate a model's coefficients by output error, with the Laplace posterior and evidence.
 
     Every coefficient of the equations that are not fixed (kinematic equations ``x' = v`` are exact)
@@ -96,6 +98,11 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         reflects those samples only, a conservative width).
     jit : {"auto", True, False}
         Compile the passes with a C compiler when available.
+    options : RefineOptions, optional
+        All of the above in one object (then leave those keywords at their defaults).
+    selection : SelectionRule, optional
+        The rule terms are kept by (default :class:`symsbl.SelectionRule`: the extended BIC's penalty per term,
+        the simpler of near-equivalent structures).
 
     Returns
     -------
@@ -122,30 +129,34 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     if not isinstance(model, IdentifiedModel):
         raise ParameterError(expected("model", "an IdentifiedModel", type(model).__name__, raw=True))
     records, measured = check_records(model, data, measured)
-    choice("interpolation", interpolation, INTERPOLATIONS)
-    max_samples = integer("max_samples", max_samples, low=64)
-    if substeps != "auto":
-        integer("substeps", substeps, low=1)
+    given = RefineOptions(select=select, interpolation=interpolation, substeps=substeps, smooth=smooth,
+                          max_samples=max_samples, jit=jit)
+    if options is not None and given != RefineOptions():
+        raise ParameterError(expected("options", "the refinement's options given once: as keywords or as a "
+                                      "RefineOptions", "both", "pass only options=RefineOptions(...)", raw=True))
+    opts = as_options(given if options is None else options, "options")
+    rule = _rule(selection)
     if not any(not eq.fixed and eq.terms for eq in model.equations):
         raise ParameterError(expected("model", "at least one equation with terms to fit", "none", raw=True))
     clock = stopwatch()
-    used, note = _windows(records, max_samples)
-    settings = Settings(interpolation=interpolation, substeps=substeps, smooth=smooth, jit=jit)
+    used, note = _windows(records, opts.max_samples)
+    settings = Settings(interpolation=opts.interpolation, substeps=opts.substeps, smooth=opts.smooth, jit=opts.jit)
+    select = opts.select
     if library is not None:
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
         library = Rebased(library, model)
     screening = select and library is not None and bool(set(model.state_names) - set(measured))
-    refined, screened = _refine_once(model, used, measured, settings, select, library, screening)
+    refined, screened = _refine_once(model, used, measured, settings, select, library, screening, rule)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
-        refined, screened = _refine_once(refined, used, measured, settings, select, library, screening)
+        refined, screened = _refine_once(refined, used, measured, settings, select, library, screening, rule)
         proposed.append(screened)
         rounds += 1
     meta = refined.metadata["refine"]
-    meta.update(samples=note, smoothed_sign=smooth, rounds=rounds,
+    meta.update(samples=note, smoothed_sign=opts.smooth, rounds=rounds,
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
@@ -170,8 +181,16 @@ def _structure(model: IdentifiedModel) -> tuple:
     return tuple(tuple(sorted(eq.names)) for eq in model.equations)
 
 
+def _rule(selection) -> SelectionRule:
+    if selection is None:
+        return DEFAULT_RULE
+    if not isinstance(selection, SelectionRule):
+        raise ParameterError(expected("selection", "a SelectionRule (or None)", type(selection).__name__, raw=True))
+    return selection.check()
+
+
 def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Rebased | None,
-                 screening: bool):
+                 screening: bool, rule: SelectionRule):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed."""
     guess = state_guess(model, used, measured)
@@ -192,12 +211,13 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
-                                        sol, engine, library, lambda n: penalty(n, n_candidates))
+                                        sol, engine, library, lambda n: rule.nats_per_term(n, n_candidates))
                 engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
             # a residual still correlated with every candidate in (unmodelled dynamics, a closed loop) carries
             # fewer independent samples than it counts: each term must then earn proportionally more
             sol = select_terms(engine, sol, alpha,
-                               lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide), twins)
+                               lambda wide: rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide),
+                               twins, rule)
             bar.update()
         fraction = residual_fraction(engine, sol)
     info = {"refine": {  # to_model adds the substeps and the interpolation
@@ -207,19 +227,17 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
     return to_model(engine, sol, info), screened
 
 
-def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None, options: dict | None = None,
-                   note: str | None = None) -> IdentifiedModel:
+def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None,
+                   options: RefineOptions | dict | None = None, note: str | None = None,
+                   selection: SelectionRule | None = None) -> IdentifiedModel:
     """The refinement :func:`symsbl.identify` runs by default: :func:`refine` with ``options``; when the
     simulation diverges on the records (a model the data cannot integrate), a
     :class:`~symsbl.RefineWarning` and the equation-error model, with ``metadata["refine"]["failed"]``
     saying why. ``note`` replaces the record of which samples were used (windows read by a caller).
     """
-    options = {} if options is None else options
-    allowed = [p for p in inspect.signature(refine).parameters if p not in ("model", "data", "library")]
-    if not isinstance(options, dict) or any(k not in allowed for k in options):
-        raise ParameterError(expected("refine_options", f"a dict with keys among {allowed}", options))
+    options = as_options(options)
     try:
-        refined = refine(model, records, library=library, **options)
+        refined = refine(model, records, library=library, options=options, selection=selection)
     except (SimulationError, np.linalg.LinAlgError) as error:  # numerical failure: the equation error stands
         warnings.warn(str(error), RefineWarning, stacklevel=3)
         return dataclasses.replace(model, metadata=dict(model.metadata, refine={"failed": str(error)}))

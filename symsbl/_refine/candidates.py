@@ -14,11 +14,12 @@ import dataclasses
 import casadi as ca
 import numpy as np
 
-from .._errors import ParameterError, expected
-from .._library import Library, Term
+from .._base.errors import ParameterError, expected
+from .._base.rule import complexity
 from .._model import IdentifiedModel
-from .._selection import complexity
-from .engine import Engine, design_rows
+from .._symbolic.library import Library, Term
+from .engine import Engine
+from .rows import design_rows, term_values
 
 __all__ = ["Rebased", "candidates", "look_alikes", "LOOK_ALIKE", "PER_EQUATION", "prior", "extend"]
 
@@ -52,7 +53,7 @@ class Rebased:
 #: library term is tried in its place: the equation error, on an estimated velocity, can rank ``sin(v)``
 #: over ``v`` (partial cosine 0.99 at |v| < 2) where the output error separates them by thousands of nats.
 LOOK_ALIKE = 0.95
-#: Partial cosine above which a term's closest simpler look-alike (:func:`symsbl._selection.complexity`) is
+#: Partial cosine above which a term's closest simpler look-alike (:func:`symsbl._regression.support.complexity`) is
 #: tried in place of a term that is not a polynomial, when no look-alike reached :data:`LOOK_ALIKE`: the
 #: equation error on noisy records can take ``sign(v)`` with a stronger ``v|v|`` for viscous damping with
 #: quadratic drag (partial cosine of ``v`` with ``sign(v)`` 0.86 on a multisine record), which the output
@@ -141,13 +142,6 @@ def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray, val
         if j not in matched and name not in found:
             found[name] = eq.terms[j].name
     return found
-
-
-def term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
-    """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
-    z = ca.vertcat(*model.states, *model.inputs)
-    f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
-    return np.asarray(f.map(Z.shape[0])(Z.T)).T
 
 
 def prior(engine: Engine) -> np.ndarray:

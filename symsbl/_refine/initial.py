@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
-from .._trajectory import Trajectory
-from .engine import _smoothing_widths, smooth_model
 from .problem import Parameterisation, Records
 from .sensitivity import Passes
+from .smoothing import smooth_model, smoothing_widths
 from .solver import initial_states, noise_precisions
 
 __all__ = ["initial_state"]
@@ -61,7 +61,7 @@ def initial_state(model: IdentifiedModel, data: Trajectory, observed, guess: np.
 
 def _fit(model, record, observed, guess, interpolation, substeps, jit) -> np.ndarray:
     """The initial state fitted to the whole of ``record`` from ``guess`` (kept when the fit is not finite)."""
-    fitted = smooth_model(model, _smoothing_widths(model, [record]))
+    fitted = smooth_model(model, smoothing_widths(model, [record]))
     param = Parameterisation.of(fitted, free=False)
     layout = Records.of(fitted, [record], tuple(observed), interpolation, int(substeps))
     passes = Passes(param, layout, jit=jit)

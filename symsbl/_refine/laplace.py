@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._errors import SimulationError, expected
+from .._base.errors import SimulationError, expected
 
 __all__ = ["Posterior", "posterior", "reduce_model", "reprior", "mackay_alpha", "mackay_fixed_point", "schur",
            "x0_pinv"]

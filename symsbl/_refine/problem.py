@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .._errors import DataError, expected
+from .._base.errors import DataError, expected
+from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
-from .._signals import Sampled
-from .._trajectory import Trajectory
+from .._simulation.signals import Sampled
 
 __all__ = ["Parameterisation", "Records", "INTERPOLATIONS", "check_records", "choose_substeps", "window_plan",
            "N_WINDOWS", "SUBSTEP_TOL"]

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._selection import complexity
+from .._base.rule import complexity
 from .laplace import x0_pinv
 from .problem import window_plan
 

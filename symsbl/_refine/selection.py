@@ -1,8 +1,8 @@
 """Term selection on the output-error evidence.
 
-The objective is the relevance vector machine's: log evidence minus ``T`` nats per free term
-(``T = 1/2 log N + log M``, the extended BIC with ``N`` the measured samples and ``M`` the candidate
-terms). From one fit of the current structure extended by the candidates (the equation-error
+The objective is the relevance vector machine's, the :class:`~symsbl.SelectionRule`'s: log evidence minus
+``T`` nats per free term (``T = 1/2 log N + log M`` by default, the extended BIC with ``N`` the measured
+samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the equation-error
 runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
 term without refitting; terms are removed one by one while that raises the objective. The structure
 it settles on is then refitted, and kept only if the refit confirms the gain.
@@ -10,33 +10,23 @@ it settles on is then refitted, and kept only if the refit confirms the gain.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._errors import SimulationError
-from .._model import Equation, IdentifiedModel, TermEstimate
+from .._base.errors import SimulationError
+from .._base.rule import DEFAULT as DEFAULT_RULE
+from .._base.rule import SelectionRule
 from .laplace import reduce_model, reprior
+from .rows import design_rows, term_values
 
 if TYPE_CHECKING:  # the engine builds on this module
     from .engine import Engine
 
-__all__ = ["penalty", "backward", "select", "objective", "with_terms", "without_terms", "free_positions"]
+__all__ = ["backward", "select", "objective"]
 
 
-def penalty(n_obs: int, n_candidates: int) -> float:
-    """Nats per free term: ``1/2 log N + log M``."""
-    return 0.5 * float(np.log(max(n_obs, 2))) + float(np.log(max(n_candidates, 2)))
-
-
-def free_positions(model: IdentifiedModel) -> list[tuple[int, int]]:
-    """``(equation, term)`` of every free coefficient, in the order of the fit's ``theta``."""
-    return [(i, j) for i, eq in enumerate(model.equations) if not eq.fixed
-            for j, term in enumerate(eq.terms) if not term.fixed]
-
-
-def backward(post, alpha: np.ndarray, cost_per_term: float, keys, equivalence_nats: float = 2.0) -> list[int]:
+def backward(post, alpha: np.ndarray, cost_per_term: float, keys, equivalence_nats: float) -> list[int]:
     """Free coefficients to remove, chosen greedily by model reduction from one posterior.
 
     Each round removes a coefficient whose removal gains (evidence change plus the penalty it saves)
@@ -58,64 +48,31 @@ def backward(post, alpha: np.ndarray, cost_per_term: float, keys, equivalence_na
     return removed
 
 
-def without_terms(model: IdentifiedModel, positions) -> IdentifiedModel:
-    """The model without the terms at ``(equation, term)`` positions."""
-    drop = set(positions)
-    equations = []
-    for i, eq in enumerate(model.equations):
-        keep = [j for j in range(len(eq.terms)) if (i, j) not in drop]
-        if len(keep) == len(eq.terms):
-            equations.append(eq)
-            continue
-        equations.append(dataclasses.replace(eq, terms=tuple(eq.terms[j] for j in keep),
-                                             covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)]))
-    return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)
-
-
-def with_terms(model: IdentifiedModel, additions: dict) -> IdentifiedModel:
-    """The model with ``additions`` ``{state: [(expr, coef), ...]}`` appended to its equations."""
-    equations = []
-    for eq in model.equations:
-        extra = additions.get(eq.lhs, [])
-        if not extra or eq.fixed:
-            equations.append(eq)
-            continue
-        terms = eq.terms + tuple(TermEstimate(expr=e, coef=c, std=np.nan) for e, c in extra)
-        n = len(terms)
-        cov = np.zeros((n, n))
-        cov[:len(eq.terms), :len(eq.terms)] = eq.covariance
-        equations.append(Equation(eq.lhs, terms, cov, eq.noise_var, eq.log_evidence, eq.n_rows,
-                                  runners_up=eq.runners_up))
-    return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)
-
-
 def objective(sol, cost_per_term: float) -> float:
     return sol.posterior.log_evidence - cost_per_term * sol.active.size
 
 
-def select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None = None):
+def select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None = None,
+           rule: SelectionRule = DEFAULT_RULE):
     """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
     the model extended by its candidates, confirmed by a refit. ``cost_of(fit)`` gives the nats per term
     from the extended fit (whose residual says how much structure no candidate explains). ``twins``
     (``{state: {look-alike: term}}``) names candidates tried in a term's place: when model reduction keeps
     both, the one whose removal costs less evidence goes (a look-alike added beside its term would soak up
     a misfit the structure has, such as an input interpolated across its steps); when it keeps the more
-    complex of a pair alone, the simpler is refitted in its place (see :func:`_simpler_twins`)."""
+    complex of a pair alone, the simpler is refitted in its place (see :func:`_simpler_twins`). ``rule`` sets
+    the margin within which structures are equivalent."""
     pairs = {lhs: dict(d) for lhs, d in (twins or {}).items()}
     for eq in engine.model.equations:  # and the equation error's indistinguishable alternatives
         for t in eq.terms:
             for a in t.alternatives:
                 pairs.setdefault(eq.lhs, {}).setdefault(a, t.name)
-    return _simpler_twins(engine, _select(engine, first, alpha, cost_of, twins), alpha, pairs)
+    return _simpler_twins(engine, _select(engine, first, alpha, cost_of, twins, rule), alpha, pairs, rule)
 
 
-#: Evidence (nats) within which two structures count as equivalent and the simpler is kept.
-EQUIVALENCE_NATS = 2.0
-
-
-def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict):
+def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: SelectionRule):
     """``best`` with each kept term whose simpler look-alike or alternative was left out replaced by it when
-    the refit's evidence is at most :data:`EQUIVALENCE_NATS` below (parsimony, as in the equation-error
+    the refit's evidence is at most ``rule.equivalence_nats`` below (parsimony, as in the equation-error
     selection); ``twins``: ``{state: {look-alike or alternative: term}}``.
 
     Model reduction scores removals from one posterior, an approximation far from it: on a drag
@@ -123,9 +80,6 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict):
     drag, which a refit put 1.6 nats higher; on a hardening oscillator it kept ``sin(x)`` for ``x`` (the
     refit 5e-4 nats higher: the same model, since ``x^3`` takes up the difference). One refit per such pair.
     """
-    from .candidates import term_values  # the candidates build on the engine, which builds on this module
-    from .engine import design_rows
-
     index = {(engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name): k
              for k, (i, j) in enumerate(engine.positions)}
     rows = None
@@ -154,12 +108,12 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict):
             except (SimulationError, np.linalg.LinAlgError):
                 continue
             if (trial.length >= best.length and np.isfinite(trial.posterior.log_evidence)
-                    and trial.posterior.log_evidence >= best.posterior.log_evidence - EQUIVALENCE_NATS):
+                    and trial.posterior.log_evidence >= best.posterior.log_evidence - rule.equivalence_nats):
                 best = trial
     return best
 
 
-def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None):
+def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None, rule: SelectionRule):
     every = np.arange(len(engine.positions))
     sol = first
     if every.size > engine.base.size:
@@ -167,29 +121,30 @@ def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | Non
         if sol is None:  # a candidate that makes the model run away: keep the fitted structure
             return first
     cost = cost_of(sol)
-    removed, post = _removals(engine, sol, alpha, cost, twins or {})
+    removed, post = _removals(engine, sol, alpha, cost, twins or {}, rule)
     chosen = np.array([k for n, k in enumerate(sol.active) if n not in removed], dtype=int)
     best = first
     if set(chosen) != set(engine.base):
         refit = _reduced(engine, sol, post, alpha, removed)
         if refit is not None and objective(refit, cost) > objective(first, cost):
             best = refit
-    if sol is not first and objective(sol, cost) > objective(best, cost) + EQUIVALENCE_NATS:
-        pruned = _prune(engine, sol, alpha, cost, twins or {}, tried=removed)
+    if sol is not first and objective(sol, cost) > objective(best, cost) + rule.equivalence_nats:
+        pruned = _prune(engine, sol, alpha, cost, twins or {}, rule, tried=removed)
         if objective(pruned, cost) > objective(best, cost):
             best = pruned
     return best
 
 
-def _removals(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict):
+def _removals(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, rule: SelectionRule):
     """Positions in ``sol.active`` that model reduction removes (then one of each look-alike pair), and the
     posterior under the structure's priors they were scored on."""
     keys = [engine.keys[k] for k in sol.active]
     # compared under the structure's own priors: MacKay's, tuned to the extended fit, split a pair of
     # near-equivalent terms unevenly and would decide between them by that split
     post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
-    removed = backward(post, alpha[sol.active], cost, keys)
-    return _one_of_each_pair(engine, sol.active, post, alpha[sol.active], removed, twins, keys), post
+    removed = backward(post, alpha[sol.active], cost, keys, rule.equivalence_nats)
+    return _one_of_each_pair(engine, sol.active, post, alpha[sol.active], removed, twins, keys,
+                             rule.equivalence_nats), post
 
 
 def _reduced(engine: Engine, sol, post, alpha: np.ndarray, removed: list):
@@ -210,7 +165,8 @@ def _reduced(engine: Engine, sol, post, alpha: np.ndarray, removed: list):
 PRUNE_REFITS = 12
 
 
-def _prune(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, tried: list | None = None):
+def _prune(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, rule: SelectionRule,
+           tried: list | None = None):
     """Backward elimination from the extended fit in confirmed steps, when one reduction of it fell short of
     the extended fit itself: model reduction extrapolates from one posterior, and far from it (many
     candidates removed at once) it can err by thousands of nats (measured: a 2-DOF oscillator recorded by
@@ -221,7 +177,7 @@ def _prune(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, tri
     """
     current, refits = sol, 0
     while refits < PRUNE_REFITS:
-        removed, post = _removals(engine, current, alpha, cost, twins)
+        removed, post = _removals(engine, current, alpha, cost, twins, rule)
         batch, accepted = len(removed), False
         if current is sol and tried is not None and list(tried) == list(removed):
             batch //= 2
@@ -286,7 +242,7 @@ def _extended_from_first(engine: Engine, first, every: np.ndarray, alpha: np.nda
 
 
 def _one_of_each_pair(engine: Engine, active: np.ndarray, post, alpha: np.ndarray, removed: list, twins: dict,
-                      keys, equivalence_nats: float = 2.0):
+                      keys, equivalence_nats: float):
     """``removed`` extended so that no look-alike stays beside its term: of each such pair, the one whose
     removal lowers the evidence less goes (Bayesian model reduction); within ``equivalence_nats`` of each
     other, the more complex goes (``keys``: parsimony keys), as in :func:`backward`. (A drag oscillator

@@ -5,7 +5,7 @@ derivative of the discrete RK4 map, propagated through the step's Jacobian) and 
 Gauss-Newton blocks ``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every
 measured channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
 segment starts. ``mapaccum`` repeats it over chunks of samples; one MX wrapper is JIT-compiled into
-a C loop (:func:`symsbl._jit.jit_wrap`) and called through ``Function.buffer()``. The
+a C loop (:func:`symsbl._base.jit.jit_wrap`) and called through ``Function.buffer()``. The
 accumulators restart every chunk (bounded round-off) and per-segment totals are gathered where
 each piece of a segment ends: one pass gives every block of the normal equations at any segment
 length, with no Python loop over segments or samples.
@@ -18,8 +18,8 @@ import hashlib
 import casadi as ca
 import numpy as np
 
-from .._jit import jit_lookup, jit_wrap
-from .._errors import SimulationError
+from .._base.errors import SimulationError
+from .._base.jit import jit_lookup, jit_wrap
 from .problem import Parameterisation, Records
 
 __all__ = ["Passes"]

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._errors import SimulationError, expected
-from .._trajectory import third_difference_std
+from .._base.errors import SimulationError, expected
+from .._data.trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
 from .sensitivity import Passes
 

@@ -14,12 +14,11 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
-
-from .._checks import integer
-from .._errors import DataError, expected
+from .._base.checks import integer
+from .._base.errors import DataError, expected
 from .._identify import identify
-from .._library import Library
 from .._model import IdentifiedModel
+from .._symbolic.library import Library
 from .records import ChunkedRecord
 from .stream import identify_stream
 

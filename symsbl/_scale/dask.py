@@ -25,17 +25,18 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
-from .._checks import enough_rows, integer
-from .._derivatives import get_differentiator
-from .._errors import DataError, LibraryError, MissingExtraError, expected
-from .._evaluator import Evaluator
-from .._identify import fit_stats
-from .._library import Library
+from .._base.checks import enough_rows, integer
+from .._base.errors import DataError, LibraryError, MissingExtraError, expected
+from .._data.trajectory import Trajectory, validate
+from .._derivatives.registry import get_differentiator
 from .._model import IdentifiedModel
-from .._regression import RegressionStats, block_stats, check_variation, library_columns
-from .._rvm import RVM
-from .._trajectory import Trajectory, validate
+from .._refine import MAX_SAMPLES, refine_or_keep
 from .._refine.problem import window_plan
+from .._regression.fit import fit_stats
+from .._regression.rows import RegressionStats, block_stats, check_variation, library_columns
+from .._regression.rvm import RVM
+from .._symbolic.evaluator import Evaluator
+from .._symbolic.library import Library
 from .stream import RESOLVE_SAMPLES
 
 __all__ = ["dask_stats", "identify_dask", "from_delayed"]
@@ -370,7 +371,6 @@ def identify_dask(
     model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
     if not refine:
         return model
-    from .._refine import MAX_SAMPLES, refine_or_keep
 
     names = (tuple(states), tuple(inputs))
     items = _dask_records(records, 1 + len(names[0]) + len(names[1]), names)

@@ -19,9 +19,9 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from .._checks import integer, number
-from .._errors import DataError, expected
-from .._trajectory import TIME_RTOL, Trajectory, validate
+from .._base.checks import integer, number
+from .._base.errors import DataError, expected
+from .._data.trajectory import TIME_RTOL, Trajectory, validate
 
 __all__ = ["ChunkedRecord", "chunked", "open_npz", "as_records", "RecordReader", "blocks", "read_windows",
            "BLOCK_SAMPLES"]

@@ -39,19 +39,20 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .._checks import enough_rows, integer
-from .._derivatives import get_differentiator
-from .._errors import DataError, LibraryError, expected
-from .._evaluator import Evaluator
-from .._identify import fit_stats
-from .._library import Library
+from .._base.checks import enough_rows, integer
+from .._base.errors import DataError, LibraryError, expected
+from .._base.progress import Progress
+from .._data.trajectory import Trajectory
+from .._derivatives.registry import get_differentiator
 from .._model import IdentifiedModel
-from .._progress import Progress
-from .._regression import RegressionStats, block_stats, check_variation, library_columns
-from .._rvm import RVM
-from .._trajectory import Trajectory
-from .records import BLOCK_SAMPLES, RecordReader, as_records, blocks, read_windows
+from .._refine import MAX_SAMPLES, refine_or_keep
 from .._refine.problem import window_plan
+from .._regression.fit import fit_stats
+from .._regression.rows import RegressionStats, block_stats, check_variation, library_columns
+from .._regression.rvm import RVM
+from .._symbolic.evaluator import Evaluator
+from .._symbolic.library import Library
+from .records import BLOCK_SAMPLES, RecordReader, as_records, blocks, read_windows
 
 __all__ = ["stream_stats", "identify_stream", "RESOLVE_SAMPLES"]
 
@@ -275,7 +276,6 @@ def identify_stream(
     model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
     if not refine:
         return model
-    from .._refine import MAX_SAMPLES, refine_or_keep
 
     options = dict(refine_options or {})
     plan, note = window_plan(counts, integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64))

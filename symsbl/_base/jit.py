@@ -1,0 +1,245 @@
+"""Compiling CasADi Functions to C: one C loop per (mapped) Function, with a fallback, kept for later runs.
+
+:func:`jit_wrap` wraps a Function (usually a ``map`` or ``mapaccum``) in one MX Function, generates its
+C source with CasADi's code generator, compiles it with the system C compiler into a shared library
+and loads it back with ``casadi.external``. Without a compiler, or when compiling fails, the
+Function runs on CasADi's virtual machine instead (``jit="auto"``) or an error says why
+(``jit=True``).
+
+Compiling costs 0.1-2 s a Function (gcc ``-O3``), often more than the computation it speeds up on
+a short record, and the same structures come back run after run (the same library, the same
+identified model re-simulated, the same refinement step). Compiled libraries are therefore kept:
+
+- in memory for the process, by the Function's serialised graph (:func:`jit_lookup`);
+- on disk between processes, by a hash of the generated C source together with the compiler,
+  its flags, the CPU and the CasADi version (so a library is never loaded on a machine or with a
+  compiler it was not built for). The directory is ``$SYMSBL_JIT_CACHE`` if set, else
+  ``$XDG_CACHE_HOME/symsbl/jit`` (``~/.cache/symsbl/jit``); it is created private to the user
+  (mode 0700) and ignored if another user owns it or others may write to it. A library is
+  written under a temporary name and renamed into place, so concurrent processes never load a
+  partial file. The least recently used libraries beyond :data:`DISK_FILES` are removed.
+  ``SYMSBL_JIT_CACHE=off`` (or ``0``, or empty) keeps compiled code for the process only.
+"""
+
+from __future__ import annotations
+
+import atexit
+import functools
+import glob
+import hashlib
+import itertools
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import time
+from collections import OrderedDict
+
+import casadi as ca
+
+from .errors import SymsblError, expected
+
+__all__ = ["compiler", "jit_wrap", "jit_lookup", "cache_dir", "DISK_FILES", "CACHE_ENV"]
+
+#: Environment variable naming the directory of compiled libraries kept between runs ("off": none).
+CACHE_ENV = "SYMSBL_JIT_CACHE"
+#: Compiled libraries kept on disk; the least recently used beyond this are removed (typically 20-200 kB each).
+DISK_FILES = 256
+#: Temporary files older than this (seconds) are left over from an interrupted compilation.
+_STALE = 3600.0
+
+_FLAGS = ("-O3", "-march=native", "-w")  # -w: generated code (empty copies) warns harmlessly
+_MEMORY: OrderedDict[tuple, ca.Function] = OrderedDict()
+_MEMORY_SIZE = 64
+_SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
+_SCRATCH: str | None = None
+_COUNTER = itertools.count()
+_OFF = frozenset({"", "0", "off", "no", "false", "none"})
+
+
+def compiler() -> str | None:
+    """The C compiler used to compile Functions (gcc or cc on PATH), or None."""
+    return shutil.which("gcc") or shutil.which("cc")
+
+
+def cache_dir() -> str | None:
+    """The directory of compiled libraries kept between runs, or None (disabled or not usable).
+
+    See the module's description for how it is chosen and when it is not used.
+    """
+    setting = os.environ.get(CACHE_ENV)
+    if setting is not None and setting.strip().lower() in _OFF:
+        return None
+    if setting:
+        path = os.path.expanduser(setting)
+    else:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        path = os.path.join(base, "symsbl", "jit")
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        st = os.stat(path)
+    except OSError:
+        return None
+    foreign = hasattr(os, "getuid") and st.st_uid != os.getuid()
+    if foreign or st.st_mode & 0o022 or not os.access(path, os.W_OK | os.X_OK):
+        return None  # another user could place a library here that this process would load
+    return path
+
+
+def _scratch_dir() -> str:
+    """A private temporary directory for the process, removed at exit (used when no cache directory is)."""
+    global _SCRATCH
+    if _SCRATCH is None:
+        _SCRATCH = tempfile.mkdtemp(prefix="symsbl_jit_")
+        atexit.register(shutil.rmtree, _SCRATCH, True)
+    return _SCRATCH
+
+
+@functools.lru_cache(maxsize=4)
+def _fingerprint(cc: str) -> str:
+    """What a compiled library depends on besides its source: compiler, flags, CPU, CasADi."""
+    try:
+        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        version = ""
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo") as f:  # -march=native: the instruction set of this CPU
+            lines = [line for line in f if line.startswith(("model name", "flags"))]
+        cpu = "".join(sorted(set(lines)))
+    except OSError:
+        cpu = platform.processor()
+    return "\n".join([cc, version, " ".join(_FLAGS), platform.machine(), cpu, ca.__version__])
+
+
+def jit_lookup(key) -> ca.Function | None:
+    """A compiled function cached in memory under ``key`` by :func:`jit_wrap`, or None."""
+    if key in _MEMORY:
+        _MEMORY.move_to_end(key)
+        return _MEMORY[key]
+    return None
+
+
+def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
+             only_cached: bool = False, key=None) -> tuple[ca.Function, bool]:
+    """``fn`` compiled as one C function (an MX wrapper compiled with gcc), or ``fn`` itself.
+
+    Compiling a wrapper around a ``map`` or ``mapaccum`` produces one C loop, which removes
+    CasADi's per-call overhead of the virtual machine (0.1-1 us a sample). Compiled functions are
+    kept in memory per process and on disk between runs (see the module's description).
+
+    Parameters
+    ----------
+    fn : ca.Function
+    name : str
+    jit : {"auto", True, False}
+        ``"auto"`` compiles when a compiler exists and falls back silently; ``True`` requires it.
+    error : SymsblError subclass
+        Raised when ``jit=True`` cannot be honoured.
+    only_cached : bool
+        Compile only if the same function was asked for before in this process or was compiled in
+        an earlier run (compiling would not pay off for one short use, and does for a structure
+        used again: fits over many records, seeds or windows).
+    key : hashable, optional
+        The in-memory cache key (default: a hash of ``fn``'s serialised graph and ``name``); a
+        caller that knows a cheaper one (the small step the function was built from) passes it.
+
+    Returns
+    -------
+    (ca.Function, bool)
+        The function to call and whether it is compiled.
+    """
+    if jit is False:
+        return fn, False
+    cc = compiler()
+    if cc is None:
+        if jit is True:
+            raise error(expected("jit", "a C compiler (gcc or cc on PATH) for jit=True", "none found",
+                                 "install gcc or pass jit='auto'", raw=True))
+        return fn, False
+    key = (hashlib.sha1(fn.serialize().encode()).hexdigest(), name) if key is None else key
+    cached = jit_lookup(key)
+    if cached is not None:
+        return cached, True
+    args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
+    wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
+    build = not only_cached or key in _SEEN  # compiled from the second request on: a structure used again
+    try:
+        compiled = _compile(wrapper, cc, build)
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
+        if jit is True:
+            text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)
+            reason = (text.strip().splitlines() or [str(err)])[-1][:200]
+            raise error(expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'",
+                                 raw=True)) from None
+        return fn, False
+    if compiled is None:
+        _SEEN.add(key)
+        return fn, False
+    _MEMORY[key] = compiled
+    if len(_MEMORY) > _MEMORY_SIZE:
+        _MEMORY.popitem(last=False)
+    return compiled, True
+
+
+def _compile(fn: ca.Function, cc: str, build: bool = True) -> ca.Function | None:
+    """``fn`` as a compiled shared library: loaded from the disk cache, or (if ``build``) compiled.
+
+    Returns None when ``build`` is false and no compiled library exists. The compiler runs as a
+    Python subprocess, so Ctrl-C during a compilation interrupts the program (a compiler started
+    through ``system()``, as CasADi's own JIT does, ignores SIGINT in the caller while it runs).
+    """
+    generator = ca.CodeGenerator("symsbl_jit.c", {"with_header": False})
+    generator.add(fn)
+    source = generator.dump()
+    digest = hashlib.sha256((_fingerprint(cc) + "\n" + source).encode()).hexdigest()[:40]
+    kept = cache_dir()
+    directory = kept or _scratch_dir()
+    library = os.path.join(directory, digest + ".so")
+    if os.path.exists(library):
+        try:
+            loaded = ca.external(fn.name(), library)
+        except RuntimeError:  # unreadable: built again below
+            loaded = None
+        if loaded is not None:
+            _touch(library)
+            return loaded
+    if not build:
+        return None
+    partial = os.path.join(directory, f".{digest}.{os.getpid()}.{next(_COUNTER)}")
+    try:
+        with open(partial + ".c", "w") as f:
+            f.write(source)
+        subprocess.run([cc, *_FLAGS, "-shared", "-fPIC", partial + ".c", "-o", partial + ".so"], check=True,
+                       capture_output=True)
+        os.replace(partial + ".so", library)
+    finally:
+        for leftover in (partial + ".c", partial + ".so"):
+            if os.path.exists(leftover):
+                os.remove(leftover)
+    if kept:
+        _prune(kept)
+    return ca.external(fn.name(), library)
+
+
+def _touch(path: str) -> None:
+    """Mark a cached library as used now (the pruning removes the least recently used)."""
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+
+
+def _prune(directory: str) -> None:
+    """Remove the least recently used libraries beyond :data:`DISK_FILES` and stale temporary files."""
+    now = time.time()
+    try:
+        for stale in glob.glob(os.path.join(directory, ".*.*")):
+            if now - os.path.getmtime(stale) > _STALE:
+                os.remove(stale)
+        libraries = sorted(glob.glob(os.path.join(directory, "*.so")), key=os.path.getmtime)
+        for old in libraries[: max(len(libraries) - DISK_FILES, 0)]:
+            os.remove(old)
+    except OSError:  # another process removed it first
+        pass

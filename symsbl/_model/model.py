@@ -1,0 +1,220 @@
+"""The identified model: posterior per equation, rendered as a symbolic ODE.
+
+An :class:`IdentifiedModel` holds, for each state equation ``x_k' = sum_i beta_i d_i(x, u)``, the kept candidate
+terms (CasADi expressions, the single source of truth for names and sympy forms), their posterior means, standard
+deviations and covariance, prior precisions, the noise variance and the log evidence. It renders as
+
+- a readable print with uncertainties, ``x2' = 1.000(0.001) F - 1.0000e4(3) x1 - ...``;
+- a sympy system (``to_sympy``, ``to_latex``, ``_repr_latex_``);
+- a CasADi :class:`~symsbl.OdeSystem` whose coefficients are parameters, ready to simulate;
+- JSON (``to_json`` / ``from_json``, ``save`` / ``load``), the format the command line writes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import sympy as sp
+
+from .._base.errors import ParameterError, expected
+from .._derivatives.kinematics import latent_states
+from .._simulation.ode import OdeSystem
+from .estimates import Equation, FitMethod
+from .modelfile import load_model, model_from_json, model_to_json, save_model
+
+__all__ = ["IdentifiedModel"]
+
+
+@dataclass(frozen=True)
+class IdentifiedModel:
+    """An identified system of ODEs, one :class:`Equation` per state.
+
+    Attributes
+    ----------
+    states, inputs : tuple of casadi.SX
+        Scalar symbols of the states (in equation order) and of the inputs.
+    equations : tuple of Equation
+        One per state, same order as ``states``.
+    metadata : dict
+        Free-form provenance (derivative strategy, library size, sample rate ...).
+    fit : FitMethod
+        Equation error (regression of the state derivatives) or output error (simulation error of the
+        measured states, :func:`symsbl.refine`).
+    kinematics : tuple of (str, str)
+        Declared position-velocity pairs ``(x, v)``: ``x' = v`` holds exactly (a fixed equation).
+    measured : tuple of str or None
+        The states measured in the data the model was fitted on (None: all of them).
+    joint_covariance : ndarray or None
+        Posterior covariance of all coefficients in :meth:`parameters` order when the equations
+        were estimated together (output error couples them); None for independent equations.
+
+    Examples
+    --------
+    >>> import symsbl
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> duffing = symsbl.systems.duffing()   # x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F
+    >>> train = symsbl.simulate(duffing, symsbl.time_grid(1.0, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    >>> train = train.with_noise(0.004, seed=0)  # 0.4 % of each state's standard deviation
+    >>> library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
+    >>> model = symsbl.identify(train, library)
+    >>> model.to_sympy()[1].lhs
+    Derivative(x2(t), t)
+    >>> "dot{x_{2}} &= 1.0 F" in model.to_latex(digits=3)
+    True
+
+    It saves to JSON and comes back with the same equations:
+
+    >>> import os, tempfile
+    >>> path = os.path.join(tempfile.mkdtemp(), "duffing.json")
+    >>> model.save(path)
+    >>> str(symsbl.IdentifiedModel.load(path)) == str(model)
+    True
+    >>> model.to_system().state_names  # an OdeSystem to simulate
+    ('x1', 'x2')
+    """
+
+    states: tuple[ca.SX, ...]
+    inputs: tuple[ca.SX, ...]
+    equations: tuple[Equation, ...]
+    metadata: dict = field(default_factory=dict, compare=False)
+    fit: FitMethod = FitMethod.EQUATION_ERROR
+    kinematics: tuple = ()
+    measured: tuple | None = None
+    joint_covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "fit", FitMethod(self.fit))
+        object.__setattr__(self, "kinematics", tuple(tuple(p) for p in self.kinematics))
+        if self.measured is not None:
+            object.__setattr__(self, "measured", tuple(self.measured))
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """Names of the states."""
+        return tuple(s.name() for s in self.states)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Names of the inputs."""
+        return tuple(u.name() for u in self.inputs)
+
+    def equation(self, lhs: str) -> Equation:
+        """The equation of the state called ``lhs``."""
+        for eq in self.equations:
+            if eq.lhs == lhs:
+                return eq
+        raise ParameterError(expected("lhs", f"one of the states {list(self.state_names)}", lhs))
+
+    def __str__(self) -> str:
+        lines = [str(eq) for eq in self.equations]
+        for name in self.latent_names:
+            lines.append(f"{name}: latent (not measured); {self.convention(name)}")
+        return "\n".join(lines)
+
+    @property
+    def latent_names(self) -> tuple[str, ...]:
+        """States that were not measured and are not the velocity of a measured position: their
+        equations were found, and their trajectories simulated, with no record of them."""
+        return latent_states(self.state_names, self.measured_names, self.kinematics)
+
+    def convention(self, name: str) -> str:
+        """How the scale (and sign) of the latent state ``name`` is fixed: ``z`` and ``s z`` give the same
+        measured output, so the coefficient of ``z`` in the first equation that uses it is held fixed."""
+        for eq in self.equations:
+            for t in eq.terms:
+                if t.fixed and t.name == name:
+                    return f"scaled so that its coefficient in {eq.lhs}' is {t.coef:g}"
+        used = any(name in {s.name for s in t.sympy.free_symbols} for eq in self.equations for t in eq.terms)
+        if not used:
+            return "not needed: no equation uses it (nothing hidden)"
+        return "its scale is not fixed by a term of the model"
+
+    # -- symbolic forms -------------------------------------------------------------------
+    def to_sympy(self) -> list[sp.Eq]:
+        """The system as sympy equations ``Eq(Derivative(x(t), t), rhs)``."""
+        t = sp.Symbol("t", real=True)
+        out = []
+        for eq in self.equations:
+            lhs = sp.Derivative(sp.Function(eq.lhs)(t), t)
+            out.append(sp.Eq(lhs, eq.rhs_sympy(), evaluate=False))
+        return out
+
+    def to_latex(self, digits: int = 4) -> str:
+        """LaTeX of the system, coefficients rounded to ``digits`` significant digits."""
+        lines = []
+        for eq in self.equations:
+            rhs = sp.Add(*[sp.Float(t.coef, digits) * t.sympy for t in eq.terms])
+            lines.append(rf"\dot{{{sp.latex(sp.Symbol(eq.lhs))}}} &= {sp.latex(rhs)}")
+        return r"\begin{aligned}" + r" \\ ".join(lines) + r"\end{aligned}"
+
+    def _repr_latex_(self) -> str:
+        return "$" + self.to_latex() + "$"
+
+    def parameters(self) -> tuple[list[ca.SX], np.ndarray]:
+        """Coefficient symbols ``c_<state>_<i>`` and their posterior means."""
+        syms, values = [], []
+        for eq in self.equations:
+            for i, t in enumerate(eq.terms):
+                syms.append(ca.SX.sym(f"c_{eq.lhs}_{i}"))
+                values.append(t.coef)
+        return syms, np.array(values)
+
+    @property
+    def measured_names(self) -> tuple[str, ...]:
+        """The states measured when the model was fitted (all of them unless :attr:`measured` says otherwise)."""
+        return self.state_names if self.measured is None else self.measured
+
+    def covariance(self) -> np.ndarray:
+        """Posterior covariance of all coefficients, in ``parameters`` order: the joint one of an
+        output-error fit, else block-diagonal (one block per equation)."""
+        from scipy.linalg import block_diag
+
+        if self.joint_covariance is not None:
+            return np.asarray(self.joint_covariance)
+        blocks = [np.atleast_2d(eq.covariance) for eq in self.equations if eq.terms]
+        return block_diag(*blocks) if blocks else np.zeros((0, 0))
+
+    def to_system(self, name: str = "identified") -> OdeSystem:
+        """The model as a CasADi :class:`~symsbl.OdeSystem` with the coefficients as
+        parameters (values: the posterior means)."""
+
+        syms, values = self.parameters()
+        rhs, k = [], 0
+        for eq in self.equations:
+            expr = ca.SX(0)
+            for t in eq.terms:
+                expr = expr + syms[k] * t.expr
+                k += 1
+            rhs.append(expr)
+        return OdeSystem(
+            states=tuple(self.states),
+            inputs=tuple(self.inputs),
+            rhs=tuple(rhs),
+            parameters=tuple(syms),
+            parameter_values=tuple(float(v) for v in values),
+            name=name,
+        )
+
+    # -- JSON -------------------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document written by ``symsbl identify --json`` (see :mod:`symsbl._model.modelfile`)."""
+        return model_to_json(self)
+
+    def save(self, path: str | Path) -> None:
+        """Write ``to_json()`` to ``path`` (through a temporary file renamed into place)."""
+        save_model(self, path)
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any] | str) -> IdentifiedModel:
+        """Rebuild a model from ``to_json()`` output (a dict or a JSON string), read as data: term
+        texts are parsed by a whitelist grammar, never evaluated."""
+        return model_from_json(cls, doc)
+
+    @classmethod
+    def load(cls, path: str | Path) -> IdentifiedModel:
+        """Read a model saved by :meth:`save` or ``symsbl identify --json``."""
+        return load_model(cls, path)

@@ -1,0 +1,1 @@
+"""Re-simulation and validation of an identified model, and comparison with a known system."""
