@@ -248,17 +248,16 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     start = identify(record, _library(), refine=False)
     engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=2, jit=False), {})
     passes = engine.passes
-    passes.use_weights(np.array([1e4, 1e2]))
-    passes.use_segments(passes.segment_starts(1500))
-    X0 = engine.guess[passes.starts]
-    whole = passes.sensitivities(engine.param.theta0, X0)
+    w = np.array([1e4, 1e2])
+    starts = passes.segment_starts(1500)
+    X0 = engine.guess[starts]
+    whole = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
     step, _ = sensitivity_step(engine.param, passes.records.measured, engine.substeps)
     passes.chunk = 64
     passes._sens = _chunk(step, False, passes.records.n_total, 64)
     passes._sens_buffer = passes._sens.buffer()
-    passes.use_segments(passes.starts)
-    short = passes.sensitivities(engine.param.theta0, X0)
-    for a, b in zip(whole, short):
+    short = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
+    for a, b in zip(dataclasses.astuple(whole), dataclasses.astuple(short)):
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
 
 
@@ -268,7 +267,7 @@ def test_longer_segments_start_from_the_states_the_shorter_ones_reach():
     simulation reaches there, which on the noise-free record is the reference simulation's state (not the
     initial state of another segment, or past the last one)."""
     from symsbl._refine.engine import Engine, Settings
-    from symsbl._refine.solver import _lengthen
+    from symsbl._refine.solver import Iterate, _lengthen
 
     t, X = _duffing_clean()
     record = Trajectory(t, X, _forcing(t)[:, None], ("x1", "x2"), ("F",))
@@ -276,10 +275,11 @@ def test_longer_segments_start_from_the_states_the_shorter_ones_reach():
     assert np.allclose(_coefs(start), TRUTH, rtol=1e-3)
     engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=8, jit=False), {})
     passes = engine.passes
-    passes.use_segments(passes.segment_starts(128))
-    X0, length = _lengthen(passes, engine.param.theta0, X[passes.starts], 128, 1.0, 8, 192)
-    assert length == 192 and np.array_equal(passes.starts, 192 * np.arange(round(len(t) / 192)))
-    err = np.max(np.abs(X0 - X[passes.starts]) / X.std(axis=0))
+    starts = passes.segment_starts(128)
+    it = Iterate(engine.param.theta0, X[starts], passes.segments(starts), np.ones(2))
+    it, length = _lengthen(passes, it, 128, 1.0, 8, 192)
+    assert length == 192 and np.array_equal(it.seg.starts, 192 * np.arange(round(len(t) / 192)))
+    err = np.max(np.abs(it.X0 - X[it.seg.starts]) / X.std(axis=0))
     assert err < 1e-2, err  # the initial state of the segment after: up to 3.6 std
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from .._base.errors import SimulationError
 from .._refine.engine import Engine
-from .._refine.solver import lm
+from .._refine.solver import Iterate, lm
 from .._simulation.signals import Sampled, Sine
 from .._simulation.simulate import simulate
 
@@ -44,15 +44,13 @@ def predictive_log_likelihood(model, record, measured, settings, w: np.ndarray) 
     """``log p(record | model)`` with the coefficients fixed, the initial state fitted and noise precisions ``w``."""
     engine = Engine(model, [record], measured, settings, {})
     passes = engine.passes
-    passes.use_weights(w)
     starts = passes.segment_starts(record.n_samples)
-    passes.use_segments(starts)
     theta = np.array(engine.param.theta0, dtype=float)
-    X0 = engine.guess[starts].copy()
+    start = Iterate(theta, engine.guess[starts].copy(), passes.segments(starts), np.asarray(w, dtype=float))
     none = np.array([], dtype=int)
     with np.errstate(all="ignore"):
-        theta, X0, (_, _, rr, _), _ = lm(passes, theta, X0, np.zeros_like(theta), none, tol=1e-6)
-    rr = rr.sum(axis=0)
+        it, _ = lm(passes, start, np.zeros_like(theta), none, tol=1e-6)
+    rr = it.blocks.rr.sum(axis=0)
     if not np.all(np.isfinite(rr)):
         return -math.inf
     return float(np.sum(-0.5 * rr + 0.5 * passes.n_obs * np.log(w / (2 * np.pi))))

@@ -96,9 +96,8 @@ class Scorer:
     def simulated(self) -> np.ndarray:
         """The fit's simulated states on every sample ``(n_total, nx)``, each segment from its fitted start."""
         passes, sol = self.engine.passes, self.solution
-        passes.use_segments(sol.starts)
         with np.errstate(all="ignore"):
-            return passes.simulate(sol.theta, sol.X0)
+            return passes.simulate(sol.theta, sol.X0, passes.segments(sol.starts))
 
     @property
     def residual(self) -> np.ndarray:
@@ -126,12 +125,11 @@ class Scorer:
         passes = engine.passes
         theta = np.zeros(len(engine.positions))
         theta[engine.base] = sol.theta[main.base]
-        passes.use_weights(sol.w)
         starts = passes.segment_starts(min(int(sol.length), int(passes.records.lengths.max())))
-        passes.use_segments(starts)
         origin = np.concatenate([main.passes.records.starts[k] + np.arange(a, b) for k, a, b in plan])
         with np.errstate(all="ignore"):
-            H, g, _, _ = passes.sensitivities(theta, self.simulated[origin[starts]])
+            blocks = passes.sensitivities(theta, self.simulated[origin[starts]], passes.segments(starts), sol.w)
+        H, g = blocks.H, blocks.g
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
             return np.zeros(len(candidates))
         S, gr = _reduced(H, g, theta.size)

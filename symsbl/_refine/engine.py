@@ -112,10 +112,10 @@ def residual_fraction(engine: Engine, sol: Solution) -> float:
     """``N_eff / N`` of the output-error residual at ``sol`` (the smallest over the measured channels; 1 for
     white residuals), from its autocorrelation (:func:`symsbl._data.residuals.effective_fraction`)."""
     passes = engine.passes
-    passes.use_segments(sol.starts)
     n = passes.records.n_total
     with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.simulate(sol.theta, sol.X0)[:, list(passes.records.measured)]
+        R = passes.records.Y - passes.simulate(sol.theta, sol.X0, passes.segments(sol.starts))[
+            :, list(passes.records.measured)]
     valid = passes.valid[:n] & np.isfinite(R)
     fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
     return max(min(fractions, default=1.0), 1e-3)

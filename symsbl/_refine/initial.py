@@ -17,7 +17,7 @@ from .._model import IdentifiedModel
 from .problem import Parameterisation, Records
 from .sensitivity import Passes
 from .smoothing import smooth_model, smoothing_widths
-from .solver import initial_states, noise_precisions
+from .solver import Iterate, initial_states, noise_precisions
 
 __all__ = ["initial_state"]
 
@@ -65,7 +65,7 @@ def _fit(model, record, observed, guess, interpolation, substeps, jit) -> np.nda
     param = Parameterisation.of(fitted, free=False)
     layout = Records.of(fitted, [record], tuple(observed), interpolation, int(substeps))
     passes = Passes(param, layout, jit=jit)
-    passes.use_weights(noise_precisions(layout.Y, np.isfinite(layout.Y)))
-    passes.use_segments(np.array([0]))
-    X0, _, _ = initial_states(passes, np.zeros(0), guess[None, :], sweeps=8, rtol=0.0)
-    return X0[0] if np.all(np.isfinite(X0)) else guess
+    start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])),
+                    noise_precisions(layout.Y, np.isfinite(layout.Y)))
+    it, _ = initial_states(passes, start, sweeps=8, rtol=0.0)
+    return it.X0[0] if np.all(np.isfinite(it.X0)) else guess

@@ -106,17 +106,15 @@ def screen_terms(engine_of, model, records, solution, base_engine, library, thre
     passes = engine.passes
     theta = np.zeros(len(engine.positions))
     theta[engine.base] = solution.theta[base_engine.base]
-    passes.use_weights(solution.w)
     length = min(int(solution.length), int(passes.records.lengths.max()))
     starts = passes.segment_starts(length)
-    passes.use_segments(starts)
     # the segments start on the fitted trajectory (the candidates are at zero: the same states)
     main = base_engine.passes
-    main.use_segments(solution.starts)
     origin = np.concatenate([main.records.starts[k] + np.arange(a, b) for k, a, b in plan])
     with np.errstate(all="ignore"):
-        X0 = main.simulate(solution.theta, solution.X0)[origin[starts]]
-        H, g, _, _ = passes.sensitivities(theta, X0)
+        X0 = main.simulate(solution.theta, solution.X0, main.segments(solution.starts))[origin[starts]]
+        blocks = passes.sensitivities(theta, X0, passes.segments(starts), solution.w)
+    H, g = blocks.H, blocks.g
     if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
         return {}
     S, gr = _reduced(H, g, theta.size)

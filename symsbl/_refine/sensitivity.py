@@ -14,6 +14,7 @@ length, with no Python loop over segments or samples.
 from __future__ import annotations
 
 import hashlib
+from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
@@ -22,7 +23,7 @@ from .._base.errors import SimulationError
 from .._base.jit import jit_lookup, jit_wrap
 from .problem import Parameterisation, Records
 
-__all__ = ["Passes"]
+__all__ = ["Passes", "Segments", "Blocks"]
 
 #: Samples per compiled call (at most: see :func:`chunk_size`).
 CHUNK = 4096
@@ -140,8 +141,79 @@ def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Fun
 _VM_CHUNKS: dict = {}
 
 
+@dataclass(frozen=True)
+class Segments:
+    """Where the segments of a fit start, and the bookkeeping of the pieces a pass sums them in.
+
+    A segment is cut into pieces at every chunk start; the pass returns the running sums at each piece's
+    last sample, and the sums of a segment are those of its pieces.
+
+    Attributes
+    ----------
+    starts : ndarray of int, shape (n_segments,)
+        First row of each segment.
+    piece_ends : ndarray of int
+        Last row of every piece.
+    piece_first : ndarray of int, shape (n_segments,)
+        Each segment's first piece.
+    chunk_pieces : ndarray of int
+        The first piece of every chunk (and the number of pieces, last).
+    segment_end_pieces : ndarray of int, shape (n_segments,)
+        Each segment's last piece.
+    record_of_segment : ndarray of int, shape (n_segments,)
+        The record each segment belongs to.
+    """
+
+    starts: np.ndarray
+    piece_ends: np.ndarray
+    piece_first: np.ndarray
+    chunk_pieces: np.ndarray
+    segment_end_pieces: np.ndarray
+    record_of_segment: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+
+@dataclass(frozen=True)
+class Blocks:
+    """The Gauss-Newton blocks of one pass, per segment.
+
+    Attributes
+    ----------
+    H : ndarray, shape (n_segments, ns, ns)
+        ``J^T W J`` (coefficients first, then the segment's initial state; ``ns = n_free + n_states``).
+    g : ndarray, shape (n_segments, ns)
+        ``J^T W r``.
+    rr : ndarray, shape (n_segments, n_measured)
+        The weighted squared residuals of each channel.
+    end_S : ndarray, shape (n_segments, ns, n_states)
+        The sensitivities (transposed) at each segment's last sample.
+    """
+
+    H: np.ndarray
+    g: np.ndarray
+    rr: np.ndarray
+    end_S: np.ndarray
+
+    @property
+    def cost(self) -> float:
+        """Half the weighted sum of squared residuals."""
+        return float(0.5 * self.rr.sum())
+
+    def where(self, mask: np.ndarray, other: Blocks) -> Blocks:
+        """The blocks of ``other`` for the segments in ``mask``, these elsewhere."""
+        pick = lambda a, b: np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)  # noqa: E731
+        return Blocks(pick(self.H, other.H), pick(self.g, other.g), pick(self.rr, other.rr),
+                      pick(self.end_S, other.end_S))
+
+
 class Passes:
-    """The records of a fit in the layout of the compiled passes, and the passes themselves."""
+    """The records of a fit in the layout of the compiled passes, and the passes themselves.
+
+    A pass is a function of the coefficients, the segments' initial states, the segmentation and the noise
+    precisions, all given to it; the arrays this object keeps besides the records are scratch space the
+    compiled calls read."""
 
     def __init__(self, param: Parameterisation, records: Records, jit="auto"):
         self.param, self.records = param, records
@@ -159,9 +231,9 @@ class Passes:
         finite = np.isfinite(records.Y)
         self.Y = np.vstack([np.where(finite, records.Y, 0.0), np.zeros((pad, records.Y.shape[1]))])
         self.valid = np.vstack([finite, np.zeros((pad, records.Y.shape[1]), bool)])
-        self.RESET = np.zeros(self.n_pad)
-        self.X_START = np.zeros((self.n_pad, self.layout["nx"]))
-        self.SW = np.zeros((self.n_pad, records.Y.shape[1]))
+        self._reset = np.zeros(self.n_pad)
+        self._x_start = np.zeros((self.n_pad, self.layout["nx"]))
+        self._sw = np.zeros((self.n_pad, records.Y.shape[1]))
         self.n_obs = self.valid.sum(axis=0)
 
     # -- segments ------------------------------------------------------------------------------
@@ -173,63 +245,65 @@ class Passes:
             starts.extend(int(s) + length * np.arange(k))
         return np.array(starts, dtype=np.int64)
 
-    def use_segments(self, starts: np.ndarray) -> None:
-        """Reset flags and the bookkeeping of pieces (segments split at chunk starts)."""
+    def segments(self, starts: np.ndarray) -> Segments:
+        """The segmentation starting at rows ``starts`` (sorted, the first row of every record among them)."""
         n, C = self.records.n_total, self.chunk
-        self.starts = starts
-        self.RESET[:] = 0.0
-        self.RESET[starts] = 1.0
+        starts = np.asarray(starts, dtype=np.int64)
         cuts = np.union1d(starts, np.arange(0, n, C))
         ends = np.append(cuts[1:], n) - 1
         segment_of_piece = np.searchsorted(starts, ends, side="right") - 1
-        self.piece_ends = ends
-        self.piece_first = np.searchsorted(segment_of_piece, np.arange(len(starts)))
-        self.chunk_pieces = np.searchsorted(ends, np.arange(0, self.n_pad + 1, C))
-        self.segment_end_pieces = np.searchsorted(ends, np.append(starts[1:], n) - 1)
-        self.record_of_segment = np.searchsorted(self.records.starts, starts, side="right") - 1
+        return Segments(starts=starts, piece_ends=ends,
+                        piece_first=np.searchsorted(segment_of_piece, np.arange(len(starts))),
+                        chunk_pieces=np.searchsorted(ends, np.arange(0, self.n_pad + 1, C)),
+                        segment_end_pieces=np.searchsorted(ends, np.append(starts[1:], n) - 1),
+                        record_of_segment=np.searchsorted(self.records.starts, starts, side="right") - 1)
 
-    def use_weights(self, w: np.ndarray) -> None:
-        """Noise precisions ``(n_measured,)`` of the measured channels."""
-        self.w = np.asarray(w, dtype=float)
-        self.SW[:] = np.sqrt(self.w)[None, :] * self.valid
+    def _load(self, seg: Segments, X0: np.ndarray, w: np.ndarray | None = None) -> None:
+        """Fill the scratch arrays the compiled calls read: reset flags, initial states, weights."""
+        self._reset[:] = 0.0
+        self._reset[seg.starts] = 1.0
+        self._x_start[seg.starts] = X0
+        if w is not None:
+            self._sw[:] = np.sqrt(np.asarray(w, dtype=float))[None, :] * self.valid
 
     # -- passes --------------------------------------------------------------------------------
-    def sensitivities(self, theta: np.ndarray, X0: np.ndarray):
-        """Per segment: ``H = J^T W J`` ``(K, ns, ns)``, ``g = J^T W r`` ``(K, ns)``, the weighted squared
-        residuals per channel ``(K, ny)`` and ``S^T`` at the segment ends ``(K, ns, nx)``."""
+    def sensitivities(self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray) -> Blocks:
+        """The Gauss-Newton blocks of every segment of ``seg`` at coefficients ``theta``, initial states ``X0``
+        ``(n_segments, n_states)`` and noise precisions ``w`` ``(n_measured,)``."""
         lay, C = self.layout, self.chunk
         nx, ns, ntri = lay["nx"], lay["ns"], lay["ntri"]
-        self.X_START[self.starts] = X0
+        self._load(seg, X0, w)
         theta = np.ascontiguousarray(theta, dtype=float)
         buf, call = self._sens_buffer
         z0 = np.zeros(lay["nz"])
         zout = np.empty((C, lay["nz"]))
-        pieces = np.empty((len(self.piece_ends), lay["nz"]))
+        pieces = np.empty((len(seg.piece_ends), lay["nz"]))
         buf.set_arg(3, memoryview(theta))
         buf.set_res(0, memoryview(zout))
         for c, a in enumerate(range(0, self.n_pad, C)):
             z0[nx + nx * ns:] = 0.0  # the sums restart every chunk
             buf.set_arg(0, memoryview(z0))
-            for i, arr in ((1, self.UD), (2, self.DT), (4, self.RESET), (5, self.X_START), (6, self.Y), (7, self.SW)):
+            for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.Y),
+                           (7, self._sw)):
                 buf.set_arg(i, memoryview(arr[a:a + C]))
             call()
-            p0, p1 = self.chunk_pieces[c], self.chunk_pieces[c + 1]
+            p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
             if p1 > p0:
-                pieces[p0:p1] = zout[self.piece_ends[p0:p1] - a]
+                pieces[p0:p1] = zout[seg.piece_ends[p0:p1] - a]
             z0[:] = zout[-1]
-        sums = np.add.reduceat(pieces[:, nx + nx * ns:], self.piece_first, axis=0)
-        K = len(self.starts)
+        sums = np.add.reduceat(pieces[:, nx + nx * ns:], seg.piece_first, axis=0)
+        K = len(seg)
         H = np.empty((K, ns, ns))
         iu, ju = np.triu_indices(ns)
         H[:, iu, ju] = sums[:, :ntri]
         H[:, ju, iu] = sums[:, :ntri]
-        end_S = pieces[self.segment_end_pieces, nx:nx + nx * ns].reshape(K, ns, nx)
-        return H, sums[:, ntri:ntri + ns], sums[:, ntri + ns:], end_S
+        end_S = pieces[seg.segment_end_pieces, nx:nx + nx * ns].reshape(K, ns, nx)
+        return Blocks(H, sums[:, ntri:ntri + ns], sums[:, ntri + ns:], end_S)
 
-    def simulate(self, theta: np.ndarray, X0: np.ndarray) -> np.ndarray:
+    def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""
         nx, C = self.layout["nx"], CHUNK
-        self.X_START[self.starts] = X0
+        self._load(seg, X0)
         theta = np.ascontiguousarray(theta, dtype=float)
         out = np.empty((self.n_pad, nx))
         if self._state is None:
@@ -239,7 +313,7 @@ class Passes:
         buf.set_arg(3, memoryview(theta))
         for a in range(0, self.n_pad, C):
             buf.set_arg(0, memoryview(x0))
-            for i, arr in ((1, self.UD), (2, self.DT), (4, self.RESET), (5, self.X_START)):
+            for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start)):
                 buf.set_arg(i, memoryview(arr[a:a + C]))
             buf.set_res(0, memoryview(out[a:a + C]))
             call()

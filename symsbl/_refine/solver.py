@@ -14,16 +14,16 @@ records are tried at once and kept when they simulate the data about as well as 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .._base.errors import SimulationError, expected
 from .._data.trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
-from .sensitivity import Passes
+from .sensitivity import Blocks, Passes, Segments
 
-__all__ = ["Solution", "fit", "lm", "noise_precisions"]
+__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "initial_states"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -31,6 +31,35 @@ PHI_STOP = 1e4
 #: Excess of the whole records' cost over the segments' (as a share of it) up to which the continuation
 #: jumps to whole records (see :func:`_jump`).
 JUMP = 0.02
+
+
+@dataclass(frozen=True)
+class Iterate:
+    """Where a fit stands: coefficients, the segments and their initial states, the noise precisions, and
+    the blocks of the pass made there (None until one is made). Every step of the solver takes one and
+    returns a new one.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (n_free,)
+    X0 : ndarray, shape (n_segments, n_states)
+    seg : Segments
+    w : ndarray, shape (n_measured,)
+        Noise precisions of the measured channels.
+    blocks : Blocks or None
+    """
+
+    theta: np.ndarray
+    X0: np.ndarray
+    seg: Segments
+    w: np.ndarray
+    blocks: Blocks | None = None
+
+    def evaluated(self, passes: Passes) -> tuple[Iterate, int]:
+        """This iterate with its pass made (and the number of passes that took: 0 or 1)."""
+        if self.blocks is not None:
+            return self, 0
+        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w)), 1
 
 
 @dataclass
@@ -63,8 +92,11 @@ def restrict(H: np.ndarray, g: np.ndarray | None, active: np.ndarray, npar: int)
     return H[:, idx][:, :, idx], (None if g is None else g[:, idx])
 
 
-def _step(H, g, theta, alpha, lam):
-    """The damped step ``(H + A + lam diag) d = g - A theta``; segment states eliminated per segment."""
+# -- the damped step -------------------------------------------------------------------------------
+def damped_step(H, g, theta, alpha, lam):
+    """The Levenberg-Marquardt step ``(H + A + lam diag) d = g - A theta`` with every segment's initial state
+    eliminated by its own Schur complement; returns the coefficients' step, the initial states' steps and
+    the decrease of the quadratic model."""
     npar = theta.size
     Htt = H[:, :npar, :npar].sum(0) + np.diag(alpha)
     Htx, Hxx = H[:, :npar, npar:], H[:, npar:, npar:].copy()
@@ -85,91 +117,127 @@ def _step(H, g, theta, alpha, lam):
     return dth, dX, predicted
 
 
+# -- the acceptance rule ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Damping:
+    """The Levenberg-Marquardt damping ``lam`` and its growth factor ``nu`` (Nielsen's update)."""
+
+    lam: float = 1e-4
+    nu: float = 2.0
+
+    def accepted(self, rho: float) -> Damping:
+        """After an accepted step with gain ratio ``rho``: less damping."""
+        return Damping(max(self.lam * max(0.1, 1 - (2 * rho - 1) ** 3), 1e-12), 2.0)
+
+    def refused(self) -> Damping:
+        """After a refused step: more damping, growing faster each time."""
+        return Damping(self.lam * self.nu, self.nu * 2.0)
+
+
+def _objective(blocks: Blocks, theta, alpha, active) -> float:
+    return blocks.cost + 0.5 * float(np.sum(alpha[active] * theta[active] ** 2))
+
+
+def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
+    """Whether a trial step is taken, and its gain ratio: the actual decrease of the objective over the
+    quadratic model's, which must be positive beyond round-off."""
+    rho = (E - E_trial) / predicted if predicted > 0 else -1.0
+    return bool(np.isfinite(E_trial) and rho > 1e-4), rho
+
+
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
-def lm(passes: Passes, theta, X0, alpha, active, *, tol: float, max_iter: int = 60, lam: float = 1e-4,
-       first=None):
-    """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed weights and
-    segments; returns ``theta, X0, (H, g, rr, end_S), n_pass``. ``first``: the pass at the start, if made."""
-    npar = theta.size
-    H, g, rr, end_S = passes.sensitivities(theta, X0) if first is None else first
-    n_pass = int(first is None)
-    E = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
+def lm(passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = 60,
+       damping: Damping = Damping()) -> tuple[Iterate, int]:
+    """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed noise
+    precisions and segments; returns the iterate reached (with its pass) and the number of passes made."""
+    it, n_pass = it.evaluated(passes)
+    npar = it.theta.size
+    E = _objective(it.blocks, it.theta, alpha, active)
     if not np.isfinite(E):
-        return theta, X0, (H, g, rr, end_S), n_pass
-    nu = 2.0
+        return it, n_pass
     for _ in range(max_iter):
-        Hs, gs = restrict(H, g, active, npar)
+        Hs, gs = restrict(it.blocks.H, it.blocks.g, active, npar)
         try:
-            step, dX, predicted = _step(Hs, gs, theta[active], alpha[active], lam)
+            step, dX, predicted = damped_step(Hs, gs, it.theta[active], alpha[active], damping.lam)
         except np.linalg.LinAlgError:
             step, dX, predicted = None, None, np.nan
         if not (np.isfinite(predicted) and np.all(np.isfinite(step)) and np.all(np.isfinite(dX))):
-            lam *= nu
-            nu *= 2.0
-            if lam > 1e12:
+            damping = damping.refused()
+            if damping.lam > 1e12:
                 break
             continue
         dth = np.zeros(npar)
         dth[active] = step
-        trial = passes.sensitivities(theta + dth, X0 + dX)
+        trial, _ = replace(it, theta=it.theta + dth, X0=it.X0 + dX, blocks=None).evaluated(passes)
         n_pass += 1
-        E_trial = 0.5 * trial[2].sum() + 0.5 * np.sum(alpha[active] * (theta + dth)[active] ** 2)
-        rho = (E - E_trial) / predicted if predicted > 0 else -1.0
-        if np.isfinite(E_trial) and rho > 1e-4:
-            E_old, E = E, E_trial
-            theta, X0 = theta + dth, X0 + dX
-            H, g, rr, end_S = trial
-            lam, nu = max(lam * max(0.1, 1 - (2 * rho - 1) ** 3), 1e-12), 2.0
+        E_trial = _objective(trial.blocks, trial.theta, alpha, active)
+        taken, rho = accept(E, E_trial, predicted)
+        if taken:
+            E_old, E, it = E, E_trial, trial
+            damping = damping.accepted(rho)
             if predicted < tol and E_old - E < 2 * tol:
                 break
         else:
             if predicted < 1e-3 * tol:
                 break
-            lam *= nu
-            nu *= 2.0
-    return theta, X0, (H, g, rr, end_S), n_pass
+            damping = damping.refused()
+    return it, n_pass
 
 
 @np.errstate(over="ignore", invalid="ignore")
-def initial_states(passes: Passes, theta, X0, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3):
+def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3
+                   ) -> tuple[Iterate, int]:
     """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
     segment whose step does not lower its cost tries a quarter of it next. At most ``sweeps`` sweeps, fewer
     once every segment's step was accepted and they gained less than ``tol`` nats or ``rtol`` of the cost
     together (the joint fit that follows finishes what is left: it is a start, not the answer). Returns the
-    initial states, the blocks of :meth:`Passes.sensitivities` there and the number of passes made."""
-    npar = theta.size
-    H, g, rr, end_S = passes.sensitivities(theta, X0)
-    cost = 0.5 * rr.sum(1)
+    iterate (with its pass) and the number of passes made."""
+    npar = it.theta.size
+    it, n_pass = it.evaluated(passes)
+    X0, blocks = it.X0, it.blocks
+    cost = 0.5 * blocks.rr.sum(1)
     shrink = np.ones(len(X0))
-    n_pass = 1
     for _ in range(sweeps):
-        Hxx = H[:, npar:, npar:].copy()
+        Hxx = blocks.H[:, npar:, npar:].copy()
         nx = Hxx.shape[1]
         dxx = np.einsum("kii->ki", Hxx)
         Hxx[:, np.arange(nx), np.arange(nx)] += 1e-9 * dxx + 1e-300
-        dX = np.linalg.solve(Hxx, g[:, npar:, None])[:, :, 0] * shrink[:, None]
-        H2, g2, rr2, end_S2 = passes.sensitivities(theta, X0 + dX)
+        dX = np.linalg.solve(Hxx, blocks.g[:, npar:, None])[:, :, 0] * shrink[:, None]
+        trial = passes.sensitivities(it.theta, X0 + dX, it.seg, it.w)
         n_pass += 1
-        c2 = 0.5 * rr2.sum(1)
+        c2 = 0.5 * trial.rr.sum(1)
         better = np.isfinite(c2) & (c2 <= cost)
         gain = float(np.sum(cost[better] - c2[better]))
         X0 = X0 + dX * better[:, None]
-        H[better], g[better], rr[better], end_S[better], cost[better] = (H2[better], g2[better], rr2[better],
-                                                                         end_S2[better], c2[better])
+        blocks = blocks.where(better, trial)
+        cost = np.where(better, c2, cost)
         shrink = np.where(better, 1.0, shrink / 4)
         if gain < max(tol, rtol * float(cost.sum())) and np.all(better):
             break  # converged: another sweep would gain little
-    return X0, (H, g, rr, end_S), n_pass
+    return replace(it, X0=X0, blocks=blocks), n_pass
 
 
-def _reweight(passes: Passes, rr, n_free: int):
+# -- the noise precisions ----------------------------------------------------------------------------
+def _reweight(passes: Passes, it: Iterate, n_free: int) -> np.ndarray:
     """New noise precisions from the residuals (degrees of freedom shared in proportion to the samples)."""
-    dof = n_free + len(passes.starts) * passes.layout["nx"]
+    dof = n_free + len(it.seg) * passes.layout["nx"]
     keep = 1.0 - dof / max(passes.n_obs.sum(), 1)
-    ssr = rr.sum(0) / passes.w
+    ssr = it.blocks.rr.sum(0) / it.w
     return passes.n_obs * max(keep, 0.5) / np.maximum(ssr, 1e-300)
 
 
+def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool):
+    """LM at the current noise precisions, then once more if their estimate moved by more than 2 %."""
+    it, n = lm(passes, it, alpha, active, tol=tol)
+    if update_noise:
+        w_new = _reweight(passes, it, active.size)
+        if np.max(np.abs(np.log(w_new / it.w))) > 0.02:
+            it, n2 = lm(passes, replace(it, w=w_new, blocks=None), alpha, active, tol=tol)
+            n += n2
+    return it, n
+
+
+# -- the continuation policy -------------------------------------------------------------------------
 def _longest(length: int, phi: float) -> int:
     """The longest segment whose state-transition growth stays below :data:`PHI_STOP`, if it grows
     exponentially from ``phi`` over ``length`` samples (no limit for a contracting system)."""
@@ -197,39 +265,38 @@ def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
     return np.where(scale > 0, scale, 1.0)
 
 
-def _resegment(passes: Passes, theta, X0, starts: np.ndarray) -> np.ndarray:
-    """Switch to segments ``starts``; their initial states from the current segments: a current segment's own
-    where one starts there (the continuation's lengths are multiples of each other), else the state its
+def _resegment(passes: Passes, it: Iterate, starts: np.ndarray) -> Iterate:
+    """The iterate on segments ``starts``, their initial states from the current segments: a current segment's
+    own where one starts there (the continuation's lengths are multiples of each other), else the state its
     simulation reaches."""
-    idx = np.minimum(np.searchsorted(passes.starts, starts), len(passes.starts) - 1)
-    X0 = X0[idx] if np.array_equal(passes.starts[idx], starts) else passes.simulate(theta, X0)[starts]
-    passes.use_segments(starts)
-    return X0
+    old = it.seg.starts
+    idx = np.minimum(np.searchsorted(old, starts), len(old) - 1)
+    if np.array_equal(old[idx], starts):
+        X0 = it.X0[idx]
+    else:
+        X0 = passes.simulate(it.theta, it.X0, it.seg)[starts]
+    return replace(it, X0=X0, seg=passes.segments(starts), blocks=None)
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a whole record that diverges is refused by its non-finite cost
-def _jump(passes: Passes, theta, X0, full: int, scale: np.ndarray, cost: float):
+def _jump(passes: Passes, it: Iterate, full: int, scale: np.ndarray) -> tuple[bool, Iterate, float]:
     """Whole segments of ``full`` samples tried at once, from the initial states of the segments they start
     with; kept if they simulate the record as well as the short segments did, up to what the short
     segments' extra initial states fit of the noise (half a nat each) and :data:`JUMP` of the cost, with a
-    state-transition growth below :data:`PHI_STOP` (else the segments are restored). Returns whether they
-    were kept, the trial ``(starts, X0, pass)`` and the growth over the whole segments."""
-    before = passes.starts.copy()
-    X0_full = _resegment(passes, theta, X0, passes.segment_starts(full))
-    trial = passes.sensitivities(theta, X0_full)
-    phi = _growth(trial[3], theta.size, scale)
-    allowance = 0.5 * passes.layout["nx"] * (len(before) - len(passes.starts)) + JUMP * cost
-    kept = bool(np.all(np.isfinite(trial[2])) and 0.5 * trial[2].sum() <= cost + allowance and phi <= PHI_STOP)
-    starts = passes.starts
-    if not kept:
-        passes.use_segments(before)
-    return kept, (starts, X0_full, trial), phi
+    state-transition growth below :data:`PHI_STOP`. Returns whether they are kept, the trial iterate (with
+    its pass) and the growth over the whole segments."""
+    trial, _ = _resegment(passes, it, passes.segment_starts(full)).evaluated(passes)
+    phi = _growth(trial.blocks.end_S, it.theta.size, scale)
+    cost = it.blocks.cost
+    allowance = 0.5 * passes.layout["nx"] * (len(it.seg) - len(trial.seg)) + JUMP * cost
+    kept = bool(np.all(np.isfinite(trial.blocks.rr)) and trial.blocks.cost <= cost + allowance and phi <= PHI_STOP)
+    return kept, trial, phi
 
 
-def _lengthen(passes: Passes, theta, X0, length: int, phi: float, growth: int, full: int):
+def _lengthen(passes: Passes, it: Iterate, length: int, phi: float, growth: int, full: int):
     """Segments ``growth`` times longer (at most ``full``, and short enough that the state-transition growth
     ``phi`` over ``length`` samples, extrapolated, stays below :data:`PHI_STOP`), from the states the
-    current segments reach at their starts: ``X0, length``, or None when not even twice as long is."""
+    current segments reach at their starts: ``(iterate, length)``, or None when not even twice as long is."""
     factor = min(growth, _longest(length, phi) // length)
     if factor < 2:
         return None
@@ -237,14 +304,15 @@ def _lengthen(passes: Passes, theta, X0, length: int, phi: float, growth: int, f
     starts = passes.segment_starts(length)
     if np.array_equal(starts, passes.segment_starts(full)):
         length = full  # the same segments (each record's last one runs to its end): the final stage
-    return _resegment(passes, theta, X0, starts), length
+    return _resegment(passes, it, starts), length
 
 
-def _reuse(passes: Passes, X0, trial):
-    """The pass of a refused ``trial`` when the segments and initial states are now the same (else None)."""
-    if trial is not None and np.array_equal(passes.starts, trial[0]) and np.array_equal(X0, trial[1]):
-        return trial[2]
-    return None
+def _reuse(it: Iterate, trial: Iterate | None) -> Iterate:
+    """``it`` with the pass of a refused ``trial`` when the segments and initial states are the same."""
+    if trial is not None and np.array_equal(it.seg.starts, trial.seg.starts) and np.array_equal(it.X0, trial.X0) \
+            and np.array_equal(it.theta, trial.theta) and np.array_equal(it.w, trial.w):
+        return replace(it, blocks=trial.blocks)
+    return it
 
 
 def _require_finite(theta, H) -> None:
@@ -252,24 +320,6 @@ def _require_finite(theta, H) -> None:
         raise SimulationError(expected("output-error refinement", "a simulation that stays finite",
                                        "non-finite states or sensitivities (the model diverges on this record)",
                                        "the equation-error model stands", raw=True))
-
-
-def _first_segments(passes: Passes, theta, guess, length: int):
-    starts = passes.segment_starts(length)
-    passes.use_segments(starts)
-    return initial_states(passes, theta, guess[starts].copy())
-
-
-def _settle_noise(passes: Passes, theta, X0, alpha, active, tol: float, update_noise: bool, first=None):
-    """LM at the current weights, then once more if the noise estimate moved by more than 2 %."""
-    theta, X0, blocks, n = lm(passes, theta, X0, alpha, active, tol=tol, first=first)
-    if update_noise:
-        w_new = _reweight(passes, blocks[2], active.size)
-        if np.max(np.abs(np.log(w_new / passes.w))) > 0.02:
-            passes.use_weights(w_new)
-            theta, X0, blocks, n2 = lm(passes, theta, X0, alpha, active, tol=tol)
-            n += n2
-    return theta, X0, blocks, n
 
 
 def _prior_precisions(H, theta, alpha, active):
@@ -282,50 +332,55 @@ def _prior_precisions(H, theta, alpha, active):
     return out
 
 
-def _continuation(passes: Passes, theta, X0, first, alpha, active, guess, length: int, full: int, growth: int,
+def _stage(length: int, it: Iterate, n: int, phi: float, **extra) -> dict:
+    return dict(length=length, segments=len(it.seg), passes=n, growth=phi, cost=it.blocks.cost, **extra)
+
+
+def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int, full: int, growth: int,
                   tol: float, update_noise: bool):
-    """The stages of :func:`fit` from segments of ``length`` samples: ``theta, X0, blocks, length, stages,
-    passes``."""
-    scale = _state_scale(guess, X0)
+    """The stages of :func:`fit` from segments of ``length`` samples: ``iterate, length, stages, passes``.
+
+    Each stage fits at its segment length; then the whole records are tried (:func:`_jump`) until once
+    they amplified the state past :data:`PHI_STOP`; else the segments grow (:func:`_lengthen`). A length
+    whose fit amplifies the state past :data:`PHI_STOP` sends the fit back to the last length that did not.
+    """
+    scale = _state_scale(guess, it.X0)
     stages, previous, leap, jumped, n_pass = [], None, True, False, 0
     while True:
         final = length >= full
-        theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol if final else 1.0,
-                                                        update_noise, first)
+        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise)
         n_pass += n
-        phi = _growth(end_S, theta.size, scale)
-        stages.append(dict(length=length, segments=len(passes.starts), passes=n, growth=phi,
-                           cost=float(0.5 * rr.sum())))
-        first, trial = None, None
+        phi = _growth(it.blocks.end_S, it.theta.size, scale)
+        stages.append(_stage(length, it, n, phi))
+        trial = None
         if phi > PHI_STOP and previous is not None:
             # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
             # initial states and coefficients are then nearly collinear; back to the last length that did not
-            length, starts, theta, X0 = previous
-            passes.use_segments(starts)
+            length, back = previous
+            it = replace(back, w=it.w, blocks=None)  # at the noise precisions reached since
             if jumped:  # whole records that grew once fitted: lengthen stage by stage from before the jump
                 stages[-1]["back"], leap, jumped = True, False, False
                 continue
-            theta, X0, (H, g, rr, end_S), n = _settle_noise(passes, theta, X0, alpha, active, tol, update_noise)
+            it, n = _settle_noise(passes, it, alpha, active, tol, update_noise)
             n_pass += n
-            stages.append(dict(length=length, segments=len(starts), passes=n, growth=float("nan"),
-                               cost=float(0.5 * rr.sum()), back=True))
+            stages.append(_stage(length, it, n, float("nan"), back=True))
             break
-        if final or phi > PHI_STOP or not np.all(np.isfinite(theta)):
+        if final or phi > PHI_STOP or not np.all(np.isfinite(it.theta)):
             break
-        previous = (length, passes.starts.copy(), theta.copy(), X0.copy())
+        previous = (length, it)
         if leap:  # not once whole segments amplified the state past PHI_STOP: they would again
             n_pass += 1
-            kept, trial, phi_full = _jump(passes, theta, X0, full, scale, float(0.5 * rr.sum()))
+            kept, trial, phi_full = _jump(passes, it, full, scale)
             stages[-1]["jump"], leap = kept, phi_full <= PHI_STOP
             if kept:
-                (_, X0, first), length, jumped = trial, full, True
+                it, length, jumped = trial, full, True
                 continue
-        longer = _lengthen(passes, theta, X0, length, phi, growth, full)
+        longer = _lengthen(passes, it, length, phi, growth, full)
         if longer is None:
             break  # longer segments would amplify the state by more than PHI_STOP: stay here
-        X0, length = longer
-        first = _reuse(passes, X0, trial)
-    return theta, X0, (H, g, rr, end_S), length, stages, n_pass
+        it, length = longer
+        it = _reuse(it, trial)
+    return it, length, stages, n_pass
 
 
 def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
@@ -359,27 +414,27 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
     n_total = passes.records.n_total
-    passes.use_weights(noise_precisions(passes.Y[:n_total], passes.valid[:n_total]) if w is None else w)
+    w = noise_precisions(passes.Y[:n_total], passes.valid[:n_total]) if w is None else np.asarray(w, dtype=float)
     full = int(passes.records.lengths.max())
     full = full if longest is None else min(int(longest), full)
     length = min(length0, full)
     if warm is not None:
-        passes.use_segments(warm.starts)
-        X0, length, full, first, n_pass = warm.X0.copy(), warm.length, warm.length, None, 0
+        it = Iterate(theta, warm.X0.copy(), passes.segments(warm.starts), w)
+        length, full, n_pass = warm.length, warm.length, 0
     else:
-        X0, first, n_pass = _first_segments(passes, theta, guess, length)
-    theta, X0, (H, g, rr, end_S), length, stages, n = _continuation(passes, theta, X0, first, alpha, active, guess,
-                                                                    length, full, growth, tol, update_noise)
+        starts = passes.segment_starts(length)
+        it, n_pass = initial_states(passes, Iterate(theta, guess[starts].copy(), passes.segments(starts), w))
+    it, length, stages, n = _continuation(passes, it, alpha, active, guess, length, full, growth, tol, update_noise)
     n_pass += n
-    _require_finite(theta, H)
+    _require_finite(it.theta, it.blocks.H)
     if mackay:
-        alpha = _prior_precisions(H, theta, alpha, active)
+        alpha = _prior_precisions(it.blocks.H, it.theta, alpha, active)
         # the blocks at the optimum do not depend on the prior: the pass made there is the first of this fit
-        theta, X0, (H, g, rr, end_S), n = lm(passes, theta, X0, alpha, active, tol=tol, first=(H, g, rr, end_S))
+        it, n = lm(passes, it, alpha, active, tol=tol)
         n_pass += n
-    Hs, _ = restrict(H, None, active, theta.size)
-    cost = 0.5 * rr.sum() + 0.5 * np.sum(alpha[active] * theta[active] ** 2)
-    post = posterior(Hs, theta[active], alpha[active], cost, passes.n_obs, passes.w)
-    return Solution(theta=theta, X0=X0, starts=passes.starts.copy(), length=length, cost=float(cost),
-                    ssr=rr.sum(0) / passes.w, w=passes.w.copy(), alpha=alpha, posterior=post, H=H, stages=stages,
-                    n_pass=n_pass, active=active)
+    Hs, _ = restrict(it.blocks.H, None, active, it.theta.size)
+    cost = _objective(it.blocks, it.theta, alpha, active)
+    post = posterior(Hs, it.theta[active], alpha[active], cost, passes.n_obs, it.w)
+    return Solution(theta=it.theta, X0=it.X0, starts=it.seg.starts.copy(), length=length, cost=float(cost),
+                    ssr=it.blocks.rr.sum(0) / it.w, w=it.w.copy(), alpha=alpha, posterior=post, H=it.blocks.H,
+                    stages=stages, n_pass=n_pass, active=active)
