@@ -119,8 +119,16 @@ class Constraint:
     def indices(cls) -> "Constraint":
         return cls("indices")
 
-    def check(self, name: str, value, n_columns: int = 0):
-        """The validated value, or :class:`ParameterError` naming ``name``."""
+    def check(self, name: str, value, n_columns: int = 0, error: type[SymsblError] = ParameterError):
+        """The validated value, or ``error`` (:class:`ParameterError` by default) naming ``name``."""
+        try:
+            return self._check(name, value, n_columns)
+        except ParameterError as exc:
+            if error is ParameterError:
+                raise
+            raise error(str(exc)) from None
+
+    def _check(self, name: str, value, n_columns: int):
         if value is None and self.none:
             return None
         if self.kind == "choice":
@@ -147,9 +155,10 @@ class Constraint:
                                           value)) from None
 
 
-def check_params(params: Mapping, constraints: Mapping[str, Constraint], n_columns: int = 0) -> dict:
-    """Every parameter checked against its constraint; returns the validated values."""
-    return {name: constraints[name].check(name, value, n_columns) for name, value in params.items()}
+def check_params(params: Mapping, constraints: Mapping[str, Constraint], n_columns: int = 0,
+                 error: type[SymsblError] = ParameterError) -> dict:
+    """Every parameter checked against its constraint (raising ``error``); returns the validated values."""
+    return {name: constraints[name].check(name, value, n_columns, error) for name, value in params.items()}
 
 
 def _indices(name: str, value, n_columns: int) -> list[int]:

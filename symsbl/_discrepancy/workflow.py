@@ -36,7 +36,7 @@ from typing import Sequence
 import casadi as ca
 import numpy as np
 
-from .._base.checks import choice, integer
+from .._base.checks import Constraint, check_params
 from .._base.errors import DataError, LibraryError, expected
 from .._data.residuals import effective_fraction
 from .._data.trajectory import Trajectory, noise_levels
@@ -59,6 +59,15 @@ __all__ = ["discrepancy", "Workflow", "EVIDENCE"]
 
 #: What the evidence of an effect is computed from.
 EVIDENCE = ("output-error", "equation-error")
+
+#: The accepted values of :func:`discrepancy`'s scalar options, declared as data (checked where they enter).
+OPTIONS = {
+    "error": Constraint.choice(ERROR_MEASURES),
+    "evidence": Constraint.choice(EVIDENCE),
+    "search_library": Constraint.boolean(),
+    "max_iterations": Constraint.integer(low=1),
+    "seed": Constraint.integer(low=0),
+}
 
 
 def _regressors(X: np.ndarray) -> np.ndarray:
@@ -182,16 +191,18 @@ def discrepancy(
     """
     check_record(data, "data", None)
     names = (tuple(data.state_names), tuple(data.input_names))
-    choice("error", error, ERROR_MEASURES, error=DataError)
+    error = check_params({"error": error}, OPTIONS, error=DataError)["error"]
     evidence = ("output-error" if error == "simulation" else "equation-error") if evidence is None else evidence
-    choice("evidence", evidence, EVIDENCE, error=DataError)
+    options = check_params(dict(evidence=evidence, search_library=search_library, max_iterations=max_iterations,
+                                seed=seed), OPTIONS, error=DataError)
+    evidence, search_library, max_iterations, seed = (options[k] for k in ("evidence", "search_library",
+                                                                           "max_iterations", "seed"))
     if evidence == "output-error" and error != "simulation":
         raise DataError(expected("error", "'simulation' with evidence='output-error' (the output-error search scores "
                                  "terms the equation-error measure cannot evaluate)", error,
                                  "use evidence='equation-error' for a plant that cannot run open loop"))
     if not isinstance(rule, DecisionRule):
         raise DataError(expected("rule", "a DecisionRule", type(rule).__name__, raw=True))
-    max_iterations = integer("max_iterations", max_iterations, low=1, error=DataError)
     if heldout is None:
         data, heldout = split_record(data)
     check_record(heldout, "heldout", names)
