@@ -252,7 +252,8 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     starts = passes.segment_starts(1500)
     X0 = engine.guess[starts]
     whole = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
-    step, _ = sensitivity_step(engine.param, passes.records.measured, engine.substeps)
+    records = passes.records
+    step, _ = sensitivity_step(engine.param, records.observe, records.n_outputs, engine.substeps)
     passes.chunk = 64
     passes._sens = _chunk(step, False, passes.records.n_total, 64)
     passes._sens_buffer = passes._sens.buffer()

@@ -116,6 +116,8 @@ class Records:
     UD : ndarray, shape (n_total, n_u * nodes)
         Row ``r`` holds the input over the interval that *ends* at sample ``r`` (zero at a record's
         first sample, where the state is reset instead of stepped).
+    UN : ndarray, shape (n_total, n_u)
+        The inputs at each sample (what an output that depends on the input reads).
     DT : ndarray, shape (n_total,)
         The step that ends at each sample (0 at a record's first sample).
     starts, lengths : ndarray of int
@@ -132,6 +134,16 @@ class Records:
     measured: tuple
     interpolation: str
     substeps: int
+    UN: np.ndarray
+
+    @property
+    def n_outputs(self) -> int:
+        """Measured channels."""
+        return len(self.measured)
+
+    def observe(self, x: ca.SX, u: ca.SX, theta: ca.SX) -> ca.SX:
+        """The measured channels at state ``x``, input ``u`` and coefficients ``theta``."""
+        return ca.vertcat(*[x[i] for i in self.measured])
 
     @classmethod
     def of(cls, model: IdentifiedModel, records, measured, interpolation: str, substeps: int) -> "Records":
@@ -144,13 +156,16 @@ class Records:
         total = int(lengths.sum())
         Y = np.empty((total, len(idx)))
         UD = np.zeros((total, n_nodes * len(model.input_names)))
+        UN = np.zeros((total, len(model.input_names)))
         DT = np.zeros(total)
         for r, s in zip(records, starts):
             n = r.n_samples
             Y[s:s + n] = np.column_stack([r.column(m) for m in measured])
             UD[s + 1:s + n] = _stage_values(r, model.input_names, interpolation, substeps)
+            if model.input_names:
+                UN[s:s + n] = np.column_stack([r.column(u) for u in model.input_names])
             DT[s + 1:s + n] = np.diff(r.t)
-        return cls(Y, UD, DT, starts, lengths, idx, interpolation, substeps)
+        return cls(Y, UD, DT, starts, lengths, idx, interpolation, substeps, UN)
 
     @property
     def n_total(self) -> int:

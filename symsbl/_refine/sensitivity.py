@@ -1,14 +1,17 @@
-"""One compiled pass over the records: the simulation, its sensitivities and the Gauss-Newton blocks.
+"""One compiled pass over the records: the simulation, its sensitivities, the outputs, the Gauss-Newton blocks.
 
-One SX step function carries the state ``x``, its sensitivities ``S = dx/d[theta, x0]`` (the exact
-derivative of the discrete RK4 map, propagated through the step's Jacobian) and running sums of the
-Gauss-Newton blocks ``J^T W J`` (upper triangle), ``J^T W r`` and the weighted squared residual of every
-measured channel. It resets the state to the segment's initial state (and ``S`` to ``[0, I]``) where a
-segment starts. ``mapaccum`` repeats it over chunks of samples; one MX wrapper is JIT-compiled into
-a C loop (:func:`symsbl._base.jit.jit_wrap`) and called through ``Function.buffer()``. The
-accumulators restart every chunk (bounded round-off) and per-segment totals are gathered where
-each piece of a segment ends: one pass gives every block of the normal equations at any segment
-length, with no Python loop over segments or samples.
+One SX step function carries the state ``x`` and its sensitivities ``S = dx/d[theta, x0]`` (the exact
+derivative of the discrete RK4 map, propagated through the step's Jacobian), resets them to the segment's
+initial state (and ``S`` to ``[0, I]``) where a segment starts, and returns at every sample the model's
+outputs ``h(x, u, theta)`` (the measured channels: a state, or any expression of the states, inputs and
+coefficients) with their Jacobian ``dh/d[theta, x0] = dh/dx S + [dh/dtheta, 0]``. ``mapaccum`` repeats it
+over chunks of samples; one MX wrapper is JIT-compiled into a C loop (:func:`symsbl._base.jit.jit_wrap`) and
+called through ``Function.buffer()``.
+
+The residuals and Jacobian rows of a chunk then go through the noise model's whitening filter (per
+channel; identity for white noise) and the noise precisions, and the blocks ``J^T W J``, ``J^T W r`` and the
+squared residuals are summed per segment with matrix products, each chunk's pieces of a segment at once:
+one pass gives every block of the normal equations at any segment length.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from .._base.blas import one_blas_thread
 from .._base.errors import SimulationError
 from .._base.jit import jit_lookup, jit_wrap
 from .problem import Parameterisation, Records
@@ -67,22 +71,22 @@ def _rk4(param: Parameterisation, x, theta, ud, dt, substeps: int):
     return xi
 
 
-def _symbols(param: Parameterisation, substeps: int, n_measured: int):
+def _symbols(param: Parameterisation, substeps: int):
     nx, nu, npar = len(param.model.states), len(param.model.inputs), param.n_free
     return dict(x=ca.SX.sym("x", nx), theta=ca.SX.sym("theta", npar), ud=ca.SX.sym("ud", nu * (2 * substeps + 1)),
                 dt=ca.SX.sym("dt"), reset=ca.SX.sym("reset"), x_start=ca.SX.sym("x_start", nx),
-                y=ca.SX.sym("y", n_measured), sw=ca.SX.sym("sw", n_measured))
+                un=ca.SX.sym("un", nu))
 
 
-def sensitivity_step(param: Parameterisation, measured, substeps: int) -> tuple[ca.Function, dict]:
-    """The step ``(z, ud, dt, theta, reset, x_start, y, sw) -> z_next`` with ``z = [x, vec(S), sums]``."""
-    nx, npar, ny = len(param.model.states), param.n_free, len(measured)
+def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps: int) -> tuple[ca.Function, dict]:
+    """The step ``(z, ud, dt, theta, reset, x_start, un) -> (z_next, h, Jh)`` with ``z = [x, vec(S)]``.
+
+    ``observe(x, u, theta)`` gives the ``n_outputs`` outputs (an SX column) at the state ``x`` and the input
+    ``u`` of the sample; ``Jh`` is their Jacobian in ``[theta, x0]``, column-major ``(n_outputs * ns,)``."""
+    nx, npar, ny = len(param.model.states), param.n_free, n_outputs
     ns = npar + nx
-    ntri = ns * (ns + 1) // 2
-    nsum = ntri + ns + ny
-    v = _symbols(param, substeps, ny)
+    v = _symbols(param, substeps)
     S = ca.SX.sym("S", nx, ns)
-    sums = ca.SX.sym("sums", nsum)
     x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
     # S_next = dx_next/dx S + [dx_next/dtheta, 0]: the step's Jacobian (CasADi takes it in reverse mode, nx sweeps)
     # times S costs 2-10x fewer operations than pushing all ns directions through the step in forward mode
@@ -93,23 +97,22 @@ def sensitivity_step(param: Parameterisation, measured, substeps: int) -> tuple[
     reset = v["reset"] > 0.5
     x1 = ca.if_else(reset, v["x_start"], x_next)
     S1 = ca.if_else(reset, ca.SX(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
-    previous = ca.if_else(reset, ca.SX.zeros(nsum), sums)
-    r = v["sw"] * (v["y"] - x1[list(measured)])
-    J = ca.diag(v["sw"]) @ S1[list(measured), :]
-    JtJ = J.T @ J
-    iu, ju = np.triu_indices(ns)
-    tri = ca.vertcat(*[JtJ[int(a), int(b)] for a, b in zip(iu, ju)])
-    z = ca.vertcat(v["x"], ca.vec(S), sums)
-    z_next = ca.vertcat(x1, ca.vec(S1), previous + ca.vertcat(tri, J.T @ r, r * r))
-    names = ["z", "ud", "dt", "theta", "reset", "x_start", "y", "sw"]
-    f = ca.Function("sensitivity_step", [z, v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"], v["y"], v["sw"]],
-                    [z_next], names, ["z_next"], {"cse": True})
-    return f, dict(nx=nx, ns=ns, ny=ny, ntri=ntri, nsum=nsum, nz=nx + nx * ns + nsum, npar=npar)
+    xs = ca.SX.sym("xs", nx)
+    h = observe(xs, v["un"], v["theta"])
+    output = ca.Function("output", [xs, v["un"], v["theta"]],
+                         [h, ca.jacobian(h, xs), ca.jacobian(h, v["theta"])])
+    h1, hx, ht = output(x1, v["un"], v["theta"])
+    Jh = hx @ S1 + ca.horzcat(ht, ca.SX.zeros(ny, nx))
+    z = ca.vertcat(v["x"], ca.vec(S))
+    names = ["z", "ud", "dt", "theta", "reset", "x_start", "un"]
+    f = ca.Function("sensitivity_step", [z, *(v[n] for n in names[1:])],
+                    [ca.vertcat(x1, ca.vec(S1)), h1, ca.vec(Jh)], names, ["z_next", "h", "Jh"], {"cse": True})
+    return f, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
 def state_step(param: Parameterisation, substeps: int) -> ca.Function:
     """The step ``(x, ud, dt, theta, reset, x_start) -> x_next`` of the simulation alone."""
-    v = _symbols(param, substeps, 0)
+    v = _symbols(param, substeps)
     x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
     out = ca.if_else(v["reset"] > 0.5, v["x_start"], x_next)
     return ca.Function("state_step", [v["x"], v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"]], [out],
@@ -117,7 +120,8 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
 
 
 def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Function:
-    """``chunk`` steps of ``step`` (its first input carried), ``theta`` (input 3) given once."""
+    """``chunk`` steps of ``step`` (its first input and output carried, the other outputs returned at every
+    step), ``theta`` (input 3) given once."""
     key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", chunk)
     cached = jit_lookup(key) if jit is not False else _VM_CHUNKS.get(key)
     if cached is not None:
@@ -126,7 +130,9 @@ def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Fun
     args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) if i in (0, 3)
             else ca.MX.sym(step.name_in(i), step.size1_in(i), chunk) for i in range(step.n_in())]
     call = [args[0], args[1], args[2], ca.repmat(args[3], 1, chunk), *args[4:]]
-    wrapper = ca.Function(f"{step.name()}_chunk", args, [acc(*call)], step.name_in(), step.name_out())
+    outs = acc(*call)
+    outs = list(outs) if isinstance(outs, (list, tuple)) else [outs]
+    wrapper = ca.Function(f"{step.name()}_chunk", args, outs, step.name_in(), step.name_out())
     if jit is False:  # building the map of a large step takes seconds: kept for the structure's next records
         _VM_CHUNKS[key] = wrapper
         while len(_VM_CHUNKS) > 16:
@@ -143,32 +149,32 @@ _VM_CHUNKS: dict = {}
 
 @dataclass(frozen=True)
 class Segments:
-    """Where the segments of a fit start, and the bookkeeping of the pieces a pass sums them in.
-
-    A segment is cut into pieces at every chunk start; the pass returns the running sums at each piece's
-    last sample, and the sums of a segment are those of its pieces.
+    """Where the segments of a fit start, and how a pass sums them: in pieces, a segment cut at chunk starts.
 
     Attributes
     ----------
     starts : ndarray of int, shape (n_segments,)
         First row of each segment.
-    piece_ends : ndarray of int
-        Last row of every piece.
-    piece_first : ndarray of int, shape (n_segments,)
-        Each segment's first piece.
-    chunk_pieces : ndarray of int
+    piece_starts : ndarray of int, shape (n_pieces,)
+        First row of every piece (the segments' starts and the chunks' starts, merged).
+    piece_segment : ndarray of int, shape (n_pieces,)
+        The segment of each piece.
+    chunk_pieces : ndarray of int, shape (n_chunks + 1,)
         The first piece of every chunk (and the number of pieces, last).
-    segment_end_pieces : ndarray of int, shape (n_segments,)
-        Each segment's last piece.
+    ends : ndarray of int, shape (n_segments,)
+        Last row of each segment.
+    since : ndarray of int, shape (n_rows,)
+        Samples since the start of the row's segment (0 at a segment's first sample).
     record_of_segment : ndarray of int, shape (n_segments,)
         The record each segment belongs to.
     """
 
     starts: np.ndarray
-    piece_ends: np.ndarray
-    piece_first: np.ndarray
+    piece_starts: np.ndarray
+    piece_segment: np.ndarray
     chunk_pieces: np.ndarray
-    segment_end_pieces: np.ndarray
+    ends: np.ndarray
+    since: np.ndarray
     record_of_segment: np.ndarray
 
     def __len__(self) -> int:
@@ -211,14 +217,16 @@ class Blocks:
 class Passes:
     """The records of a fit in the layout of the compiled passes, and the passes themselves.
 
-    A pass is a function of the coefficients, the segments' initial states, the segmentation and the noise
-    precisions, all given to it; the arrays this object keeps besides the records are scratch space the
-    compiled calls read."""
+    A pass is a function of the coefficients, the segments' initial states, the segmentation, the noise
+    precisions and the noise model, all given to it; the arrays this object keeps besides the records are
+    scratch space the compiled calls read."""
 
     def __init__(self, param: Parameterisation, records: Records, jit="auto"):
         self.param, self.records = param, records
-        step, self.layout = sensitivity_step(param, records.measured, records.substeps)
-        self.chunk = chunk_size(self.layout["nz"])  # divides CHUNK, the padding and the plain simulation's calls
+        step, self.layout = sensitivity_step(param, records.observe, records.n_outputs, records.substeps)
+        lay = self.layout
+        # divides CHUNK, the padding and the plain simulation's calls
+        self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
         self._sens = _chunk(step, jit, records.n_total, self.chunk)
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
         self._state = None  # compiled when a plain simulation is asked for
@@ -228,13 +236,15 @@ class Passes:
         pad = self.n_pad - n
         self.UD = np.vstack([records.UD, np.zeros((pad, records.UD.shape[1]))])
         self.DT = np.concatenate([records.DT, np.zeros(pad)])
+        self.UN = np.vstack([records.UN, np.zeros((pad, records.UN.shape[1]))])
         finite = np.isfinite(records.Y)
         self.Y = np.vstack([np.where(finite, records.Y, 0.0), np.zeros((pad, records.Y.shape[1]))])
         self.valid = np.vstack([finite, np.zeros((pad, records.Y.shape[1]), bool)])
         self._reset = np.zeros(self.n_pad)
-        self._x_start = np.zeros((self.n_pad, self.layout["nx"]))
-        self._sw = np.zeros((self.n_pad, records.Y.shape[1]))
+        self._x_start = np.zeros((self.n_pad, lay["nx"]))
         self.n_obs = self.valid.sum(axis=0)
+        # consecutive valid samples ending at each row, per channel (a whitening filter needs its lags valid)
+        self._valid_run = _runs(self.valid)
 
     # -- segments ------------------------------------------------------------------------------
     def segment_starts(self, length: int) -> np.ndarray:
@@ -249,56 +259,102 @@ class Passes:
         """The segmentation starting at rows ``starts`` (sorted, the first row of every record among them)."""
         n, C = self.records.n_total, self.chunk
         starts = np.asarray(starts, dtype=np.int64)
-        cuts = np.union1d(starts, np.arange(0, n, C))
-        ends = np.append(cuts[1:], n) - 1
-        segment_of_piece = np.searchsorted(starts, ends, side="right") - 1
-        return Segments(starts=starts, piece_ends=ends,
-                        piece_first=np.searchsorted(segment_of_piece, np.arange(len(starts))),
-                        chunk_pieces=np.searchsorted(ends, np.arange(0, self.n_pad + 1, C)),
-                        segment_end_pieces=np.searchsorted(ends, np.append(starts[1:], n) - 1),
+        pieces = np.union1d(starts, np.arange(0, n, C))
+        ends = np.append(starts[1:], n) - 1
+        rows = np.arange(n)
+        since = rows - starts[np.searchsorted(starts, rows, side="right") - 1]
+        return Segments(starts=starts, piece_starts=pieces,
+                        piece_segment=np.searchsorted(starts, pieces, side="right") - 1,
+                        chunk_pieces=np.searchsorted(pieces, np.arange(0, self.n_pad + 1, C)),
+                        ends=ends, since=since,
                         record_of_segment=np.searchsorted(self.records.starts, starts, side="right") - 1)
 
-    def _load(self, seg: Segments, X0: np.ndarray, w: np.ndarray | None = None) -> None:
-        """Fill the scratch arrays the compiled calls read: reset flags, initial states, weights."""
+    def _load(self, seg: Segments, X0: np.ndarray) -> None:
+        """Fill the scratch arrays the compiled calls read: reset flags and initial states."""
         self._reset[:] = 0.0
         self._reset[seg.starts] = 1.0
         self._x_start[seg.starts] = X0
-        if w is not None:
-            self._sw[:] = np.sqrt(np.asarray(w, dtype=float))[None, :] * self.valid
 
     # -- passes --------------------------------------------------------------------------------
-    def sensitivities(self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray) -> Blocks:
-        """The Gauss-Newton blocks of every segment of ``seg`` at coefficients ``theta``, initial states ``X0``
-        ``(n_segments, n_states)`` and noise precisions ``w`` ``(n_measured,)``."""
+    def sensitivities(self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray,
+                      ar: np.ndarray | None = None) -> Blocks:
+        """The Gauss-Newton blocks of every segment of ``seg``.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (n_free,)
+        X0 : ndarray, shape (n_segments, n_states)
+            The segments' initial states.
+        seg : Segments
+        w : ndarray, shape (n_outputs,)
+            Noise precisions of the channels (of their innovations, with a noise model).
+        ar : ndarray, shape (n_outputs, p), optional
+            Autoregressive noise model of each channel: the residual ``r`` is whitened to
+            ``e_t = r_t + sum_i ar[c, i-1] r_{t-i}`` and so is each Jacobian row; the first ``p`` samples of a
+            segment (and samples whose lags are not all measured) are left out (the conditional likelihood).
+            None or ``p = 0``: white noise.
+        """
         lay, C = self.layout, self.chunk
-        nx, ns, ntri = lay["nx"], lay["ns"], lay["ntri"]
-        self._load(seg, X0, w)
+        nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
+        ar = np.zeros((ny, 0)) if ar is None else np.asarray(ar, dtype=float).reshape(ny, -1)
+        self._load(seg, X0)
         theta = np.ascontiguousarray(theta, dtype=float)
+        sw = np.sqrt(np.asarray(w, dtype=float))
         buf, call = self._sens_buffer
         z0 = np.zeros(lay["nz"])
         zout = np.empty((C, lay["nz"]))
-        pieces = np.empty((len(seg.piece_ends), lay["nz"]))
+        hout = np.empty((C, ny))
+        jout = np.empty((C, ny * ns))
+        K = len(seg)
+        H = np.zeros((K, ns, ns))
+        g = np.zeros((K, ns))
+        rr = np.zeros((K, ny))
+        end_S = np.zeros((K, ns, nx))
         buf.set_arg(3, memoryview(theta))
         buf.set_res(0, memoryview(zout))
+        buf.set_res(1, memoryview(hout))
+        buf.set_res(2, memoryview(jout))
+        with one_blas_thread():
+            self._chunks(buf, call, seg, ar, sw, z0, zout, hout, jout, H, g, rr, end_S)
+        return Blocks(H, g, rr, end_S)
+
+    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, zout, hout, jout, H, g, rr, end_S) -> None:
+        """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks."""
+        lay, C = self.layout, self.chunk
+        nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
+        order = ar.shape[1]
+        lag_r = np.zeros((order, ny))
+        lag_j = np.zeros((order, ny, ns))
         for c, a in enumerate(range(0, self.n_pad, C)):
-            z0[nx + nx * ns:] = 0.0  # the sums restart every chunk
             buf.set_arg(0, memoryview(z0))
-            for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.Y),
-                           (7, self._sw)):
+            for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.UN)):
                 buf.set_arg(i, memoryview(arr[a:a + C]))
             call()
-            p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
-            if p1 > p0:
-                pieces[p0:p1] = zout[seg.piece_ends[p0:p1] - a]
             z0[:] = zout[-1]
-        sums = np.add.reduceat(pieces[:, nx + nx * ns:], seg.piece_first, axis=0)
-        K = len(seg)
-        H = np.empty((K, ns, ns))
-        iu, ju = np.triu_indices(ns)
-        H[:, iu, ju] = sums[:, :ntri]
-        H[:, ju, iu] = sums[:, :ntri]
-        end_S = pieces[seg.segment_end_pieces, nx:nx + nx * ns].reshape(K, ns, nx)
-        return Blocks(H, sums[:, ntri:ntri + ns], sums[:, ntri + ns:], end_S)
+            n = min(C, self.records.n_total - a)
+            if n <= 0:
+                break
+            R = self.Y[a:a + n] - hout[:n]                                   # (n, ny)
+            J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)               # (n, ny, ns)
+            E, EJ, keep = R, J, self.valid[a:a + n]
+            if order:
+                R_ext = np.concatenate([lag_r, R])
+                J_ext = np.concatenate([lag_j, J])
+                E = R.copy()
+                EJ = J.copy()
+                for i in range(1, order + 1):
+                    E += ar[:, i - 1] * R_ext[order - i:order - i + n]
+                    EJ += ar[:, i - 1][None, :, None] * J_ext[order - i:order - i + n]
+                keep = keep & (seg.since[a:a + n, None] >= order) & (self._valid_run[a:a + n] > order)
+                lag_r, lag_j = R_ext[-order:], J_ext[-order:]
+            weight = sw[None, :] * keep                                      # (n, ny)
+            E = E * weight
+            EJ = EJ * weight[:, :, None]
+            p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
+            _accumulate(H, g, rr, seg.piece_starts[p0:p1] - a, seg.piece_segment[p0:p1], n, E, EJ)
+            last = seg.ends[(seg.ends >= a) & (seg.ends < a + n)]
+            if last.size:
+                end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)
 
     def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""
@@ -319,3 +375,46 @@ class Passes:
             call()
             x0 = out[a + C - 1].copy()
         return out[:self.records.n_total]
+
+
+def _runs(valid: np.ndarray) -> np.ndarray:
+    """Per channel, the number of consecutive valid samples ending at each row (0 where invalid)."""
+    out = np.zeros(valid.shape, dtype=np.int64)
+    for c in range(valid.shape[1]):
+        v = valid[:, c].astype(np.int64)
+        total = np.cumsum(v)
+        last_reset = np.maximum.accumulate(np.where(v == 0, total, 0))
+        out[:, c] = total - last_reset
+    return out
+
+
+#: Rows times (coefficients squared) of one block product at most (memory of the padded pieces: 2^22 doubles).
+_PRODUCT = 2**22
+
+
+def _accumulate(H, g, rr, piece_starts, piece_segment, n: int, E: np.ndarray, EJ: np.ndarray) -> None:
+    """Add one chunk's whitened, weighted residuals ``E`` ``(n, ny)`` and Jacobian rows ``EJ`` ``(n, ny, ns)`` to
+    the blocks of the segments its pieces belong to (pieces start at the chunk offsets ``piece_starts``)."""
+    ny, ns = EJ.shape[1], EJ.shape[2]
+    lengths = np.diff(np.append(piece_starts, n))
+    rr_chunk = np.add.reduceat(E * E, piece_starts, axis=0)
+    np.add.at(rr, piece_segment, rr_chunk)
+    if len(piece_starts) == 1 or lengths.max() * len(piece_starts) * ns * ns * ny > _PRODUCT:
+        for p0, length, k in zip(piece_starts, lengths, piece_segment):
+            A = EJ[p0:p0 + length].reshape(-1, ns)
+            H[k] += A.T @ A
+            g[k] += A.T @ E[p0:p0 + length].reshape(-1)
+        return
+    # many short pieces: pad them to one length and multiply them in one batched product
+    L = int(lengths.max())
+    piece = np.repeat(np.arange(len(piece_starts)), lengths)
+    offset = np.arange(n) - np.repeat(piece_starts, lengths)
+    A = np.zeros((len(piece_starts), L, ny, ns))
+    A[piece, offset] = EJ
+    b = np.zeros((len(piece_starts), L, ny))
+    b[piece, offset] = E
+    A = A.reshape(len(piece_starts), L * ny, ns)
+    b = b.reshape(len(piece_starts), L * ny)
+    At = A.transpose(0, 2, 1)
+    np.add.at(H, piece_segment, At @ A)
+    np.add.at(g, piece_segment, (At @ b[:, :, None])[:, :, 0])
