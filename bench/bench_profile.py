@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 import symsbl
 from symsbl import Multisine, identify_stream, open_npz, paper, simulate, symbols, systems
 from symsbl import _evaluator, _gram, _identify, _refine
@@ -128,6 +128,7 @@ def main():
     table("identify_stream end to end: seconds per stage (Duffing, 32768 Hz, Eq. 21 degree 3, 34 terms)",
           ["N", "reading + derivatives", "dictionary", "Gram", "RVM", "support search", "refinement", "total",
            "fit", "x2' terms"], rows)
+    write_page("profile", __doc__)
 
 
 if __name__ == "__main__":

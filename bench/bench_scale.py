@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _report import table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
 from symsbl import identify_many
 from symsbl import RVM
@@ -212,6 +212,7 @@ def main():
         if not args.skip_dask:
             dask_vs_single(directory, path, n_max)
     print(f"\nprocess peak resident memory: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+    write_page("scale", __doc__)
 
 
 if __name__ == "__main__":
