@@ -46,6 +46,7 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 import symsbl
+import _report  # bench/ is on sys.path when run as a script
 
 M, C, K, FRMS, FS = 2.0, 6.0, 3e4, 20.0, 2000.0
 FA = FRMS * np.sqrt(2)
@@ -416,6 +417,8 @@ def main():
         false_alarms(args)
     if args.part in ("information", "all"):
         information(args)
+    size = f"-{100 * args.size:g}pct" if args.part in ("cases", "beyond") else ""
+    _report.write_page(f"discrepancy-{args.part}{size}", __doc__)
 
 
 if __name__ == "__main__":

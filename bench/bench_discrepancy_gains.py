@@ -19,6 +19,7 @@ import numpy as np
 from bench_discrepancy import BASE, EFFECTS, FA, V, X, clean_records, oscillator
 
 import symsbl
+import _report  # bench/ is on sys.path when run as a script
 
 CUTS = (4.0, 5.0, 8.0)
 
@@ -75,6 +76,7 @@ def main():
                 for seed in range(args.first_seed, args.first_seed + args.seeds)]
         report(effect, rows)
         print(f"- {time.perf_counter() - t0:.0f} s")
+    _report.write_page("discrepancy-gains", __doc__)
 
 
 if __name__ == "__main__":

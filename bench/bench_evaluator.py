@@ -20,7 +20,7 @@ import sympy as sp
 from symsbl import Evaluator, paper, polynomial, symbols
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _report import timed  # noqa: E402  (bench/ is on sys.path when run as a script)
+from _report import table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 N = 1_000_000
 REPEATS = 3
@@ -137,11 +137,11 @@ def bench_case(n_states: int, degree: int) -> None:
     rows.append(("sympy lambdify(numpy, cse=True)", M, median_time(lambda: lam(Z), 2, warmup=False)))
     pysindy_rows(n_states, degree, Z, rows)
 
-    print(f"\nEq. (21), {n_states} states + F, degree {degree}: M = {M} terms, N = {N:.0e}; "
-          f"JIT compile {compile_time:.2f} s; np.copyto of N x M float64: {t_copy * 1e3:.1f} ms")
-    print(f"  {'method':42s} {'M':>4s} {'time ms':>9s} {'Gterm/s':>8s} {'x symsbl':>9s} {'x copy':>7s}")
-    for name, m, t in rows:
-        print(f"  {name:42s} {m:4d} {t * 1e3:9.1f} {N * m / t / 1e9:8.2f} {t / t_jit * M / m:9.2f} {t / t_copy * M / m:7.2f}")
+    table(f"Eq. (21), {n_states} states + F, degree {degree}: M = {M} terms, N = {N:.0e}",
+          ["method", "M", "time (ms)", "Gterm/s", "x symsbl", "x copy"],
+          [[name, m, f"{t * 1e3:.1f}", f"{N * m / t / 1e9:.2f}", f"{t / t_jit * M / m:.2f}", f"{t / t_copy * M / m:.2f}"]
+           for name, m, t in rows])
+    print(f"JIT compile {compile_time:.2f} s; np.copyto of N x M float64: {t_copy * 1e3:.1f} ms")
 
 
 def main() -> None:
@@ -150,6 +150,7 @@ def main() -> None:
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for n_states, degree in CASES:
         bench_case(n_states, degree)
+    write_page("evaluator", __doc__)
 
 
 if __name__ == "__main__":

@@ -30,23 +30,10 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-from _report import one_blas_thread, table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 
-from symsbl import (
-    Multisine,
-    OdeSystem,
-    Trajectory,
-    compare_to_truth,
-    identify,
-    inputs,
-    paper,
-    polynomial,
-    simulate,
-    symbols,
-    systems,
-    time_grid,
-    validate_model,
-)
+from _report import one_blas_thread, table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+from symsbl import (Multisine, OdeSystem, Trajectory, compare_to_truth, identify, inputs, paper, polynomial,
+                    simulate, symbols, systems, time_grid, validate_model)
 
 
 def _oscillator(m, c, k, k3):
@@ -134,6 +121,7 @@ def main():
     with one_blas_thread():
         rows = [row for case in cases() for row in run_case(*case)]
     table("Equation error (EE) against output error (OE)", ["case", "fit", "support", "max coef. error", "held-out NRMSE", "time"], rows)
+    write_page("harder", __doc__)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 import symsbl
+import _report  # bench/ is on sys.path when run as a script
 
 FS, PERIOD = 1000.0, 4.096
 N = int(FS * PERIOD)
@@ -118,6 +119,7 @@ def main():
     print(f"\nright structure in {right}/{len(results)} runs; worst parameter error "
           f"{100 * np.nanmax([r[1] for r in results]):.3g} %, worst held-out NRMSE "
           f"{100 * max(r[2] for r in results):.3g} %, median time {np.median([r[3] for r in results]):.1f} s")
+    _report.write_page("latent", __doc__)
 
 
 if __name__ == "__main__":

@@ -31,22 +31,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
 
+from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 import symsbl
-from symsbl import (
-    Multisine,
-    _evaluator,
-    _gram,
-    _identify,
-    _refine,
-    identify_stream,
-    open_npz,
-    paper,
-    simulate,
-    symbols,
-    systems,
-)
+from symsbl import Multisine, identify_stream, open_npz, paper, simulate, symbols, systems
+from symsbl._regression import fit as _fit
+from symsbl._regression import gram as _gram
+from symsbl._symbolic import evaluator as _evaluator
 from symsbl._scale import stream
 
 FS = 32768
@@ -101,8 +92,8 @@ class Clock:
 @contextlib.contextmanager
 def instrumented(clock: Clock):
     targets = [(_evaluator.Evaluator, "evaluate", "dictionary"), (_gram, "_products", "Gram"),
-               (_identify, "fit_rvm", "RVM"), (_identify, "search_support", "support search"),
-               (stream, "_stream_stats", "statistics"), (_refine, "refine_or_keep", "refinement")]
+               (_fit, "fit_rvm", "RVM"), (_fit, "search_support", "support search"),
+               (stream, "_stream_stats", "statistics"), (stream, "refine_or_keep", "refinement")]
     originals = [(owner, name, clock.wrap(owner, name, stage)) for owner, name, stage in targets]
     try:
         yield
@@ -139,6 +130,7 @@ def main():
     table("identify_stream end to end: seconds per stage (Duffing, 32768 Hz, Eq. 21 degree 3, 34 terms)",
           ["N", "reading + derivatives", "dictionary", "Gram", "RVM", "support search", "refinement", "total",
            "fit", "x2' terms"], rows)
+    write_page("profile", __doc__)
 
 
 if __name__ == "__main__":

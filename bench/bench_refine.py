@@ -58,24 +58,10 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from _report import one_blas_thread, table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 
-from symsbl import (
-    Multisine,
-    Sampled,
-    compare_to_truth,
-    identify,
-    identify_stream,
-    inputs,
-    open_npz,
-    polynomial,
-    refine,
-    simulate,
-    symbols,
-    systems,
-    time_grid,
-    validate_model,
-)
+from _report import one_blas_thread, table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+from symsbl import (Multisine, Sampled, compare_to_truth, identify, identify_stream, inputs, open_npz,
+                    polynomial, refine, simulate, symbols, systems, time_grid, validate_model)
 
 FS = 32768
 NOISE = 0.01
@@ -376,6 +362,7 @@ def main():
     print(f"\nload average at the end: {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"total {time.perf_counter() - t0:.0f} s; "
           f"this process's peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+    write_page("refine", __doc__)
 
 
 if __name__ == "__main__":

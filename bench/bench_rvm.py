@@ -21,8 +21,8 @@ import argparse
 import itertools
 
 import numpy as np
-from _report import one_blas_thread, table, timed_together  # noqa: E402  (bench/ is on sys.path when run as a script)
 
+from _report import one_blas_thread, table, timed_together, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import RVM, GramStats
 from symsbl._regression.sbl import DenseGram
 
@@ -251,3 +251,5 @@ if __name__ == "__main__":
     else:
         with one_blas_thread():
             speed()
+    write_page("rvm-" + ("recovery" if args.recovery else "detection" if args.detection else
+                         "speed-threads" if args.threads else "speed"), __doc__)

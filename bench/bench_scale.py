@@ -25,23 +25,14 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from _report import table, timed  # noqa: E402  (bench/ is on sys.path when run as a script)
 
-from symsbl import (
-    RVM,
-    Evaluator,
-    Sine,
-    WeakForm,
-    identify,
-    identify_many,
-    identify_stream,
-    open_npz,
-    paper,
-    simulate,
-    stream_stats,
-    symbols,
-    systems,
-)
+from _report import table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
+from symsbl import identify_many
+from symsbl import RVM
+from symsbl import Sine
+from symsbl import simulate
+from symsbl import identify_stream, open_npz, stream_stats
 
 FS = 32768
 PIECE = 2**20
@@ -160,7 +151,8 @@ def dask_vs_single(directory: Path, path: Path, n: int):
     import dask
     from dask.distributed import Client, LocalCluster
 
-    from symsbl import fit_stats, from_delayed, identify_dask
+    from symsbl import from_delayed, identify_dask
+    from symsbl import fit_stats
 
     t0 = time.perf_counter()
     problem = stream_stats(open_npz(path, **NAMES, stop=n), LIB)
@@ -220,6 +212,7 @@ def main():
         if not args.skip_dask:
             dask_vs_single(directory, path, n_max)
     print(f"\nprocess peak resident memory: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+    write_page("scale", __doc__)
 
 
 if __name__ == "__main__":

@@ -64,14 +64,10 @@ def scipy_run(rhs, t, method, rtol, atol):
 
 def print_table(title, rows, base_label):
     base = dict((r[0], r[1]) for r in rows)[base_label]
-    print(f"\n{title}\nratio = time / time of '{base_label}'")
-    print(f"| {'method':<44} | {'time':>11} | {'ratio':>7} | {'rel. error (x1)':>15} |")
-    print(f"|{'-' * 46}|{'-' * 13}|{'-' * 9}|{'-' * 17}|")
-    for label, sec, err in rows:
-        if isinstance(sec, str):
-            print(f"| {label:<44} | {'-':>11} | {'-':>7} | {sec:>15} |")
-        else:
-            print(f"| {label:<44} | {sec * 1e3:>8.1f} ms | {sec / base:>6.2f}x | {err:>15.1e} |")
+    _report.table(title, ["method", "time", "ratio", "rel. error (x1)"],
+                  [[label, "-", "-", sec] if isinstance(sec, str) else
+                   [label, f"{sec * 1e3:.1f} ms", f"{sec / base:.2f}x", f"{err:.1e}"] for label, sec, err in rows])
+    print(f"ratio = time / time of '{base_label}'")
 
 
 def bench_duffing(duration, repeats):
@@ -154,6 +150,7 @@ def main():
     bench_duffing(1.0, 3)
     bench_duffing(10.0, 1)
     bench_coulomb()
+    _report.write_page("simulate", __doc__)
 
 
 if __name__ == "__main__":

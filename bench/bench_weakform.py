@@ -29,12 +29,14 @@ Run: ``PYTHONPATH=. python bench/bench_weakform.py [--part oscillators|paper] [-
 from __future__ import annotations
 
 import argparse
-from collections import Counter
 
 import numpy as np
-from _report import one_blas_thread, table  # noqa: E402  (bench/ is on sys.path when run as a script)
 
-from symsbl import Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols, time_grid
+from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+from collections import Counter
+
+from symsbl import (Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols,
+                    time_grid)
 from symsbl._demo import CASES
 
 FS, DURATION, NOISE = 4096, 3.0, 0.01
@@ -155,10 +157,12 @@ def main():
     if args.part == "paper":
         with one_blas_thread():
             run_paper(args.seeds, overlaps)
+        write_page("weakform-paper", __doc__)
         return
     with one_blas_thread():
         rows = run(args.seeds, overlaps)
     table(f"Equation error with windows apart (1) or overlapping (q), {args.seeds} seeds", HEADER, rows)
+    write_page("weakform-oscillators", __doc__)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Every script in examples/ runs to its final assertions."""
+"""Every script in examples/ runs to its final assertions, and the README and the docs show them."""
 
 import os
 import subprocess
@@ -35,3 +35,9 @@ def test_readme_quickstart_is_the_example_verbatim():
     readme = (ROOT / "README.md").read_text()
     block = readme.split("## Quickstart", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
     assert block == (ROOT / "examples" / "quickstart.py").read_text()
+
+
+def test_the_docs_show_every_example():
+    pages = "\n".join(p.read_text() for p in (ROOT / "docs").rglob("*.md"))
+    missing = [p.name for p in EXAMPLES if f'--8<-- "examples/{p.name}"' not in pages]
+    assert not missing, f"examples no documentation page includes (--8<-- \"examples/NAME.py\"): {missing}"

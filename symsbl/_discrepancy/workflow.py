@@ -191,18 +191,8 @@ def discrepancy(
     """
     check_record(data, "data", None)
     names = (tuple(data.state_names), tuple(data.input_names))
-    error = check_params({"error": error}, OPTIONS, error=DataError)["error"]
-    evidence = ("output-error" if error == "simulation" else "equation-error") if evidence is None else evidence
-    options = check_params(dict(evidence=evidence, search_library=search_library, max_iterations=max_iterations,
-                                seed=seed), OPTIONS, error=DataError)
-    evidence, search_library, max_iterations, seed = (options[k] for k in ("evidence", "search_library",
-                                                                           "max_iterations", "seed"))
-    if evidence == "output-error" and error != "simulation":
-        raise DataError(expected("error", "'simulation' with evidence='output-error' (the output-error search scores "
-                                 "terms the equation-error measure cannot evaluate)", error,
-                                 "use evidence='equation-error' for a plant that cannot run open loop"))
-    if not isinstance(rule, DecisionRule):
-        raise DataError(expected("rule", "a DecisionRule", type(rule).__name__, raw=True))
+    error, evidence, search_library, max_iterations, seed = _options(error, evidence, search_library,
+                                                                     max_iterations, seed, rule)
     if heldout is None:
         data, heldout = split_record(data)
     check_record(heldout, "heldout", names)
@@ -264,6 +254,21 @@ def _added_name(step) -> str:
     if step.decision is Decision.REPLACED:
         return f"{label} (in place of {step.replaces})"
     return label
+
+
+def _options(error, evidence, search_library, max_iterations, seed, rule):
+    """:func:`discrepancy`'s scalar options checked against :data:`OPTIONS` (``evidence`` defaults by ``error``)."""
+    error = check_params({"error": error}, OPTIONS, error=DataError)["error"]
+    evidence = ("output-error" if error == "simulation" else "equation-error") if evidence is None else evidence
+    checked = check_params(dict(evidence=evidence, search_library=search_library, max_iterations=max_iterations,
+                                seed=seed), OPTIONS, error=DataError)
+    if checked["evidence"] == "output-error" and error != "simulation":
+        raise DataError(expected("error", "'simulation' with evidence='output-error' (the output-error search scores "
+                                 "terms the equation-error measure cannot evaluate)", error,
+                                 "use evidence='equation-error' for a plant that cannot run open loop"))
+    if not isinstance(rule, DecisionRule):
+        raise DataError(expected("rule", "a DecisionRule", type(rule).__name__, raw=True))
+    return error, checked["evidence"], checked["search_library"], checked["max_iterations"], checked["seed"]
 
 
 def _ending(step) -> str:

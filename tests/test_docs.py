@@ -1,0 +1,118 @@
+"""The documentation site's structure, checked without building it (CI builds it with ``mkdocs build --strict``).
+
+Every page is in the navigation and every navigation entry exists; every file a page includes exists;
+the benchmark pages are written by the ``bench/`` scripts, not by hand; the CLI reference names every
+option the commands accept; the README stays a short front door that links the site.
+"""
+
+import argparse
+import re
+from pathlib import Path
+
+import pytest
+
+from symsbl._cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+#: The line ``bench/_report.write_page`` puts first on every benchmark page.
+BENCH_MARKER = "<!-- Written by a bench/ script through bench/_report.py"
+
+
+def _pages():
+    return sorted(p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md") if "_hooks" not in p.parts)
+
+
+def _nav():
+    config = (ROOT / "mkdocs.yml").read_text()
+    nav = config[config.index("\nnav:"):]
+    return re.findall(r"^\s*-\s+(?:[^:\n]+:\s+)?([\w./-]+\.md)\s*$", nav, flags=re.MULTILINE)
+
+
+def test_every_nav_entry_exists_and_every_page_is_in_the_nav():
+    nav = _nav()
+    assert nav, "no pages found in the nav of mkdocs.yml"
+    assert len(nav) == len(set(nav)), sorted({p for p in nav if nav.count(p) > 1})
+    missing = [p for p in nav if not (DOCS / p).is_file()]
+    assert not missing, f"in the nav of mkdocs.yml but not in docs/: {missing}"
+    omitted = sorted(set(_pages()) - set(nav))
+    assert not omitted, f"pages not in the nav of mkdocs.yml (add them): {omitted}"
+
+
+def test_the_site_has_the_divio_sections():
+    nav = _nav()
+    for section in ("tutorials/", "how-to/", "explanation/", "reference/", "benchmarks/"):
+        assert any(p.startswith(section) for p in nav), section
+    for page in ("index.md", "extending.md", "architecture.md", "changelog.md", "reference/cli.md",
+                 "reference/model-file.md", "reference/exit-codes.md"):
+        assert page in nav, page
+
+
+@pytest.mark.parametrize("page", _pages())
+def test_every_included_file_exists(page):
+    text = (DOCS / page).read_text()
+    for included in re.findall(r'^--8<--\s+"([^"]+)"', text, flags=re.MULTILINE):
+        assert (ROOT / included).is_file(), f"{page} includes {included}, which does not exist"
+
+
+def test_every_example_named_by_a_page_exists():
+    named = {m for page in _pages() for m in re.findall(r"examples/(\w+\.py)", (DOCS / page).read_text())}
+    assert named
+    missing = sorted(n for n in named if not (ROOT / "examples" / n).is_file())
+    assert not missing, missing
+
+
+def test_benchmark_pages_are_written_by_the_bench_scripts():
+    pages = [p for p in (DOCS / "benchmarks").glob("*.md") if p.name != "index.md"]
+    hand_written = [p.name for p in pages if not p.read_text().startswith(BENCH_MARKER)]
+    assert not hand_written, f"benchmark pages not written by bench/_report.write_page: {hand_written}"
+    index = (DOCS / "benchmarks" / "index.md").read_text()
+    unlisted = [p.name for p in pages if f"({p.name})" not in index]
+    assert not unlisted, f"benchmark pages not linked from docs/benchmarks/index.md: {unlisted}"
+
+
+def test_the_changelog_page_includes_the_changelog():
+    assert '--8<-- "CHANGELOG.md"' in (DOCS / "changelog.md").read_text()
+    changelog = (ROOT / "CHANGELOG.md").read_text()
+    for version in ("## [Unreleased]", "## [0.2.0]", "## [0.1.0]"):
+        assert version in changelog, version
+
+
+def _options(parser):
+    """Every option string of a parser and its subcommands: ``{command: {"--states", ...}}``."""
+    found = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found.setdefault(name, set())
+                found[name] |= {o for a in sub._actions for o in a.option_strings if a.help != argparse.SUPPRESS}
+    return found
+
+
+def test_the_cli_reference_names_every_option_of_every_command():
+    reference = (DOCS / "reference" / "cli.md").read_text()
+    commands = _options(build_parser())
+    assert {"identify", "validate", "discrepancy", "demo"} <= set(commands)
+    missing = {(command, option) for command, options in commands.items() for option in options
+               if f"`{option}" not in reference}
+    assert not missing, sorted(missing)
+    for command in commands:
+        assert f"symsbl {command}" in reference, command
+
+
+def test_the_readme_is_a_short_front_door_that_links_the_site():
+    readme = (ROOT / "README.md").read_text()
+    assert readme.count("\n") <= 250, f"README.md has {readme.count(chr(10))} lines (at most 250: move sections to docs/)"
+    assert "](docs/index.md)" in readme, "README.md does not link the documentation site (docs/index.md)"
+    for section in ("## Install", "## Two commands", "## Quickstart"):
+        assert section in readme, section
+
+
+def test_every_public_name_has_a_reference_entry():
+    """The API reference documents every name of the public surface (``::: symsbl.NAME`` on some page)."""
+    import symsbl
+
+    text = "\n".join(p.read_text() for p in (DOCS / "reference").glob("*.md"))
+    documented = set(re.findall(r"^::: symsbl\.(\w+)", text, flags=re.M))
+    public = {n for n in symsbl.__all__ if not n.startswith("__") and n not in ("systems",)}
+    assert not public - documented, sorted(public - documented)
