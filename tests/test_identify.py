@@ -187,9 +187,9 @@ def test_emps_slice_by_displacement_only_warns_that_the_output_error_residual_is
 def test_the_support_search_stops_at_its_budget_with_the_best_support_found(monkeypatch):
     """With the budget of scored supports cut to 5, the search ends early and still returns a model of the
     true terms up to look-alikes (tan(x1) for x1 at this amplitude), not an error."""
-    from symsbl import _selection
+    from symsbl._regression import support
 
-    monkeypatch.setattr(_selection, "MAX_SCORED", 5)
+    monkeypatch.setattr(support, "MAX_SCORED", 5)
     x1, x2, F = symbols("x1 x2 F")
     record = simulate(systems.duffing(), time_grid(1.0, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
     names = identify(record, paper([x1, x2], [F], degree=3), refine=False).equation("x2").names
