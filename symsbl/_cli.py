@@ -81,17 +81,21 @@ def _library(spec: str, states, inputs, degree: int):
 
 
 def _outputs(args, inputs: list) -> None:
-    """Check every output option before the work starts."""
-    from ._outputs import safe_output
+    """Check every output option before the work starts: each can be written, none is an input, no two
+    are one file."""
+    from ._outputs import distinct_outputs, safe_output
 
-    if getattr(args, "json", None):
+    if getattr(args, "json", None) is not None:
         safe_output(args.json, inputs, what="--json")
     plot = getattr(args, "plot", None)
-    if plot:
+    if plot is not None:
         if Path(plot).suffix.lower() not in PLOT_FORMATS:
             raise LibraryError(expected("--plot", f"a file ending in one of {list(PLOT_FORMATS)}", plot))
         safe_output(plot, inputs, what="--plot")
+    distinct_outputs([("--json", getattr(args, "json", None)), ("--plot", plot)])
     plots = getattr(args, "plots", None)
+    if plots == "":
+        raise DataError(expected("--plots", "a directory path", "''", "name the directory to write", raw=True))
     if plots and Path(plots).exists() and not Path(plots).is_dir():
         raise LibraryError(expected("--plots", "a directory (created if missing)", f"{plots!r}, which is a file",
                                     raw=True))
@@ -178,7 +182,7 @@ def _cmd_identify(args) -> int:
     print(model)
     if "latent" in model.metadata:
         print(_latent_summary(model.metadata["latent"]))
-    if args.json:
+    if args.json is not None:
         model.save(args.json)
         print(f"model written to {args.json}")
     return 0 if any(eq.terms for eq in model.equations) else 1
@@ -206,12 +210,12 @@ def _cmd_validate(args) -> int:
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
     print(result.message)
-    if args.json:
+    if args.json is not None:
         doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}
         if result.coverage is not None:
             doc.update(coverage=result.coverage, noise_std=result.noise_std)
         _write_json(args.json, doc)
-    if args.plot:
+    if args.plot is not None:
         from .plots import figure2
 
         _save_figure(figure2(model, result), args.plot)
@@ -241,10 +245,10 @@ def _cmd_discrepancy(args) -> int:
                          kinematics=args.kinematics or None, evidence=args.evidence,
                          search_library=not args.no_library)
     print(report)
-    if args.json:
+    if args.json is not None:
         _write_json(args.json, report.to_json())
         print(f"report written to {args.json}")
-    if args.plot:
+    if args.plot is not None:
         from .plots import discrepancy_figure
 
         _save_figure(discrepancy_figure(report, heldout), args.plot)

@@ -379,7 +379,7 @@ class IdentifiedModel:
         return model_to_json(self)
 
     def save(self, path: str | Path) -> None:
-        """Write ``to_json()`` to ``path`` (through a temporary file renamed into place)."""
+        """Write ``to_json()`` to ``path``, renamed into place (a link's target; a FIFO or device written through)."""
         from ._model_json import save_model
 
         save_model(self, path)

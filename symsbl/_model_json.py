@@ -34,7 +34,7 @@ import casadi as ca
 import numpy as np
 
 from ._errors import DataError, ExpressionError, expected
-from ._outputs import write_atomic
+from ._outputs import safe_output, write_atomic
 from ._parse import parse_expression
 from ._symbolic import symbols as make_symbols
 
@@ -100,7 +100,9 @@ def model_to_json(model) -> dict[str, Any]:
 
 
 def save_model(model, path) -> None:
-    """Write ``model`` as JSON to ``path`` through a temporary file renamed into place."""
+    """Write ``model`` as JSON to ``path`` as :func:`symsbl._outputs.write_atomic` does (a file through a
+    temporary file renamed into place, a link's target likewise, a FIFO or a device written through)."""
+    path = safe_output(path, what="path")
     text = json.dumps(model_to_json(model), indent=2) + "\n"
     write_atomic(path, lambda fh: fh.write(text), binary=False)
 

@@ -108,6 +108,20 @@ CLI_CASES = [
       "--json", "{d}/train.csv"], 2,
      "symsbl discrepancy: error: --json: expected an output file other than the inputs, received '{d}/train.csv', "
      "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("empty json path", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", ""], 2,
+     "symsbl identify: error: --json: expected a file path, received ''; name the file to write"),
+    ("discrepancy json and plot on one file", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",
+      "--json", "{d}/r.png", "--plot", "{d}/r.png"], 2,
+     "symsbl discrepancy: error: --plot: expected a file other than --json's, received '{d}/r.png', which --json "
+     "writes too; give each output its own file"),
+    ("json through a link into a missing directory", "dangling",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/dangling.json"], 2,
+     "symsbl identify: error: --json: expected a file in an existing directory, received '{d}/dangling.json' (a "
+     "symbolic link to '{d}/nowhere/m.json'); create '{d}/nowhere' first"),
+    ("json into a socket", "socket", ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/sock"], 2,
+     "symsbl identify: error: --json: expected a file, a FIFO or a character device, received '{d}/sock', which is "
+     "a socket; choose a file name"),
     ("plot with an unknown extension", None, ["validate", "{d}/model.json", "{d}/train.csv", "--plot", "{d}/x.xyz"], 2,
      "symsbl validate: error: --plot: expected a file ending in one of ['.png', '.pdf', '.svg', '.jpg', '.jpeg', "
      "'.eps', '.ps', '.tif', '.tiff', '.webp'], received '{d}/x.xyz'"),
@@ -179,6 +193,13 @@ def _make(d: Path, kind: str | None) -> None:
         _write(d / "exits.py", "import sys\nsys.exit(0)\n")
     elif kind == "dead":
         _dead_input(d)
+    elif kind == "dangling" and not (d / "dangling.json").is_symlink():
+        (d / "dangling.json").symlink_to(d / "nowhere" / "m.json")
+    elif kind == "socket" and not (d / "sock").exists():
+        import socket
+
+        with socket.socket(socket.AF_UNIX) as server:  # the socket file stays once it is closed
+            server.bind(str(d / "sock"))
 
 
 @pytest.mark.parametrize("name, kind, argv, code, line", CLI_CASES, ids=[c[0] for c in CLI_CASES])
