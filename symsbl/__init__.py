@@ -10,11 +10,13 @@ only public modules are :mod:`symsbl.systems` (ready-made systems) and :mod:`sym
 (figures, optional matplotlib).
 """
 
+from . import _interrupt  # first: Ctrl-C while the symsbl command is still importing is one line, not a traceback
 from . import systems
 
 # -- errors ----------------------------------------------------------------------------------
 from ._errors import (
     DataError,
+    DivergenceError,
     ExpressionError,
     LibraryError,
     MissingExtraError,
@@ -102,8 +104,8 @@ __version__ = "0.2.0"
 
 __all__ = [
     # errors
-    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError", "RefineWarning",
+    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "DivergenceError",
+    "ParameterError", "MissingExtraError", "RefineWarning",
     # symbolic terms and libraries
     "symbols", "casadi_to_sympy", "sympy_to_casadi", "Term", "Library", "polynomial", "elementwise", "inputs",
     "custom", "paper",

@@ -17,7 +17,7 @@ import numpy as np
 
 from ._checks import choice
 from ._cvodes import run_cvodes
-from ._errors import SimulationError, expected
+from ._errors import DivergenceError, SimulationError, expected
 from ._ode import OdeSystem
 from ._rk4 import first_nonfinite_row, run_rk4
 from ._signals import FreeDecay, Sampled, Signal
@@ -219,7 +219,7 @@ def simulate(
                else "fewer than 2 samples were computed, so there is nothing to return")
         if name == "cvodes" and not system.is_continuous:
             fix += "; the right-hand side is discontinuous: use method='rk4' (or 'auto')"
-        raise SimulationError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
-                                       f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True))
+        raise DivergenceError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
+                                       f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True), t_fail)
     return Trajectory(t[:n_good], states[:n_good], U[:n_good], system.state_names, system.input_names,
                       diverged_at=t_fail)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._checks import choice
-from ._errors import DataError, SimulationError, expected
+from ._errors import DataError, DivergenceError, SimulationError, expected
 from ._trajectory import Trajectory, check_magnitude, noise_levels
 from ._model import IdentifiedModel
 from ._progress import Progress
@@ -137,6 +137,17 @@ class Validation:
         return dict(zip([names[k] for k in observed], map(float, inside.mean(axis=0))))
 
 
+#: Most Monte Carlo draws a band takes (its 3-sigma edges are then known to about 0.7 %).
+MAX_BAND_DRAWS = 10_000
+#: Memory the band's simulated responses may take (they are held at once, with their deviations: 3 copies).
+BAND_MEMORY = 2 * 2**30
+
+
+def band_limit(n_samples: int, n_states: int) -> int:
+    """The most Monte Carlo draws a band may take for a record of this size (see :data:`BAND_MEMORY`)."""
+    return int(min(MAX_BAND_DRAWS, BAND_MEMORY // (3 * 8 * max(n_samples, 1) * max(n_states, 1))))
+
+
 def _input_signal(traj: Trajectory, model: IdentifiedModel, interpolation: str):
     missing = [n for n in model.input_names if n not in traj.input_names]
     if missing:
@@ -156,6 +167,12 @@ def _check(model, data, n_band) -> tuple[str, ...]:
         raise DataError(expected("data", "a Trajectory", type(data).__name__, raw=True))
     if isinstance(n_band, bool) or not isinstance(n_band, (int, np.integer)) or n_band < 0:
         raise DataError(expected("n_band", "a number of Monte Carlo draws >= 0 (0: no band)", n_band))
+    most = band_limit(data.n_samples, len(model.state_names))
+    if n_band > most:
+        raise DataError(expected("n_band", f"at most {most} Monte Carlo draws for {data.n_samples} samples of "
+                                 f"{len(model.state_names)} states (their responses are held in memory at once, "
+                                 f"at most {BAND_MEMORY / 2**30:g} GiB)", n_band,
+                                 "100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"))
     position_of = {v: x for x, v in model.kinematics}
     observed = tuple(n for n in model.state_names if n in data.state_names)
     missing = [n for n in model.state_names if n not in data.state_names and n not in model.latent_names
@@ -291,7 +308,12 @@ def validate_model(
     choice("initial_state", initial_state, ("fit", "first"), error=DataError)
     x0 = _initial_state(model, data, observed, initial_state, interpolation, substeps)
     kw = dict(inputs=signal, x0=x0, method=method, substeps=substeps, on_divergence="truncate")
-    sim = simulate(system, data.t, **kw)
+    try:
+        sim = simulate(system, data.t, **kw)
+    except DivergenceError as err:  # within the first step: the first two samples stand for the response
+        inputs = np.column_stack([data.column(n) for n in model.input_names]) if model.input_names else None
+        sim = Trajectory(data.t[:2], np.vstack([x0, x0]), None if inputs is None else inputs[:2], model.state_names,
+                         model.input_names, diverged_at=err.diverged_at)
     n = sim.n_samples
     diverged = getattr(sim, "diverged_at", None)
     if diverged is not None or n < data.n_samples:
