@@ -120,12 +120,14 @@ def _save_figure(fig, path) -> None:
 
 
 def _read(args, path, states, inputs, *, optional=()):
-    """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing."""
-    from ._io import read_columns, read_trajectory
+    """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing. The file
+    is read once (a FIFO can be read only once)."""
+    from ._io import column_names, columns_trajectory, read_columns
 
     time = None if args.time == "" else args.time
+    columns = read_columns(path)
+    present = column_names(columns)
     if optional:
-        present = read_columns(path)
         absent = [s for s in states if s not in present and s not in optional]
         if absent:
             raise DataError(expected(
@@ -133,11 +135,11 @@ def _read(args, path, states, inputs, *, optional=()):
                 "measured; its velocity and latent states may be absent)", "no such column", raw=True))
         states = [s for s in states if s in present or s not in optional]
     try:
-        return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+        return columns_trajectory(columns, path, states=states, inputs=inputs, time=time, fs=args.fs)
     except DataError:
         if optional or getattr(args, "kinematics", None) != "":
             raise
-        absent = [s for s in states if s not in read_columns(path)]  # a velocity left out, its pair not declared?
+        absent = [s for s in states if s not in present]  # a velocity left out, its pair not declared?
         if not absent or len(absent) == len(states):
             raise
         raise DataError(expected(f"--states {','.join(absent)}", "a column of DATA", "no such column",
@@ -173,9 +175,12 @@ def _cmd_identify(args) -> int:
             raise ParameterError(expected("--overlap", "1 unless --derivative is weak",
                                           f"--overlap {args.overlap} with --derivative {derivative}", raw=True))
         derivative = WeakForm(overlap=args.overlap)
-    model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
-                     refine=not args.no_refine,
-                     refine_options={"interpolation": args.interpolation} if args.interpolation else None)
+    try:
+        model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
+                         refine=not args.no_refine,
+                         refine_options={"interpolation": args.interpolation} if args.interpolation else None)
+    except SymsblError as err:  # name the option, not the keyword behind it
+        raise type(err)(str(err).replace("WeakForm.overlap:", "--overlap:", 1)) from None
     how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
     print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
           f"coefficients by {how}:")
@@ -226,6 +231,7 @@ def _cmd_validate(args) -> int:
 def _cmd_discrepancy(args) -> int:
     from ._discrepancy import catalogue, discrepancy
     from ._discrepancy.inputs import describe_effects, read_effects
+    from ._outputs import same_file
 
     effects = catalogue(read_effects(args.effects) if args.effects else ())
     if args.list_effects:
@@ -236,6 +242,11 @@ def _cmd_discrepancy(args) -> int:
             raise DataError(expected(name, "a value (or --list-effects alone)", "none", raw=True))
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.held_out, args.effects])
+    if args.held_out is not None and (args.held_out == "" or same_file(args.held_out, args.data)):
+        raise DataError(expected("--held-out", "a record other than DATA (errors on the data a model was fitted to "
+                                 "say nothing of how it predicts)", repr(args.held_out) + ", which is DATA" *
+                                 (args.held_out != ""), "leave --held-out out to hold out the last 30 % of DATA",
+                                 raw=True))
     from ._kinematics import parse_kinematics
 
     velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
@@ -372,6 +383,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``symsbl`` console script; returns the exit code (see :data:`EXIT_CODES`)."""
+    from ._interrupt import command_started
+
+    command_started()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

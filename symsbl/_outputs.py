@@ -30,7 +30,7 @@ from pathlib import Path
 
 from ._errors import DataError, expected
 
-__all__ = ["OutputTarget", "output_target", "safe_output", "distinct_outputs", "write_atomic"]
+__all__ = ["OutputTarget", "output_target", "safe_output", "distinct_outputs", "write_atomic", "same_file"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -122,7 +122,9 @@ def _via_proc(path: Path) -> bool:
     return False
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_file(a, b) -> bool:
+    """Whether paths ``a`` and ``b`` name one file (the same path, a hard or a symbolic link)."""
+    a, b = Path(a), Path(b)
     try:
         return a.resolve() == b.resolve() or (a.exists() and b.exists() and os.path.samefile(a, b))
     except OSError:
@@ -154,7 +156,7 @@ def safe_output(path, inputs: Sequence = (), *, what: str = "--json") -> Path:
     target = output_target(path, what=what)
     path = target.path
     for src in inputs:
-        if src is not None and str(src) != "" and _same_file(path, Path(src)):
+        if src is not None and str(src) != "" and same_file(path, src):
             raise DataError(expected(what, "an output file other than the inputs", f"{str(path)!r}, which is the "
                                      f"input {str(src)!r}", "choose another file name; inputs are never modified",
                                      raw=True))
@@ -253,14 +255,22 @@ def _write_through(path: Path, write: Callable[[object], None], binary: bool) ->
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
-    fd = _own_stream(path)
+    own = _own_stream(path)
     try:
-        fd = os.dup(fd) if fd is not None else os.open(path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_NOCTTY", 0))
+        fd = os.dup(own) if own is not None else os.open(path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_NOCTTY", 0))
     except OSError as err:
         raise DataError(expected(str(path), "a writable location", f"an error opening it ({err.strerror})",
                                  raw=True)) from None
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(data)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+    except BrokenPipeError:
+        if own is None:
+            raise DataError(expected(str(path), "a reader until the end of the output", "a reader that left "
+                                     "(broken pipe)", raw=True)) from None
+        devnull = os.open(os.devnull, os.O_WRONLY)  # our own output's reader left (| head): the rest goes nowhere
+        os.dup2(devnull, own)
+        os.close(devnull)
 
 
 def _own_stream(path: Path) -> int | None:
