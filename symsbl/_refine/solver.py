@@ -71,9 +71,11 @@ def _step(H, g, theta, alpha, lam):
     gt, gx = g[:, :npar].sum(0) - alpha * theta, g[:, npar:]
     nx = Hxx.shape[1]
     dxx = np.einsum("kii->ki", Hxx)
-    Hxx[:, np.arange(nx), np.arange(nx)] += lam * dxx + 1e-12 * np.maximum(dxx.max(1, keepdims=True), 1e-300)
+    scale = np.sqrt(np.where(dxx > 0, dxx, 1.0))  # each state in its own unit: solve the unit-diagonal system
+    Hxx /= scale[:, :, None] * scale[:, None, :]
+    Hxx[:, np.arange(nx), np.arange(nx)] += lam * (dxx > 0) + 1e-12
     rhs = np.concatenate([np.transpose(Htx, (0, 2, 1)), gx[:, :, None]], axis=2)
-    sol = np.linalg.solve(Hxx, rhs)
+    sol = np.linalg.solve(Hxx, rhs / scale[:, :, None]) / scale[:, :, None]
     S = Htt + np.diag(lam * np.diag(Htt)) - np.einsum("kpi,kiq->pq", Htx, sol[:, :, :npar])
     b = gt - np.einsum("kpi,ki->p", Htx, sol[:, :, npar])
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
