@@ -337,7 +337,23 @@ MODEL_CASES = [
      "model JSON.equations[1].terms[0].std: expected a finite number >= 0 or null, received -1.0"),
     ("not an object", lambda d: d.clear() or d.update({"format": "symsbl-model", "version": 2, "states": "x1"}),
      "model JSON.states: expected a list of names, received 'x1'"),
+    ("20000 terms (a 1 MB file)", lambda d: _set(d, ("equations", 1, "terms"), [{"term": "x1", "coef": 1.0}] * 20000),
+     "model JSON.equations: expected at most 1000 terms in all (the most a model of this release is re-simulated "
+     "with), received 20001; a model file holds the terms an identification kept; check where this one came from"),
+    ("100 terms of 184 nodes each", lambda d: _heavy(d, 100),
+     "model JSON.equations: expected at most 12000 expression nodes in all (the most a model of this release is "
+     "re-simulated with), received 18400; a model file holds the terms an identification kept; check where this "
+     "one came from"),
 ]
+
+
+def _heavy(doc, n: int):
+    """``n`` terms of 184 expression nodes each in the second equation (a 54 kB file took 684 s to validate)."""
+    eq = doc["equations"][1]
+    eq["terms"] = [{"term": "+".join(f"sin({j + 1}*x1+{k}*x2)*x2**{j % 4}" for j in range(25)), "coef": 1e-12}
+                   for k in range(n)]
+    del eq["rhs"], eq["covariance"]
+    doc.pop("covariance", None)
 
 
 @pytest.mark.parametrize("name, change, message", MODEL_CASES, ids=[c[0] for c in MODEL_CASES])
