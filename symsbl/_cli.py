@@ -216,9 +216,9 @@ def _cmd_validate(args) -> int:
         raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
     print(result.message)
     if args.json is not None:
-        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}
-        if result.coverage is not None:
-            doc.update(coverage=result.coverage, noise_std=result.noise_std)
+        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit,
+               **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
+               **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse})}
         _write_json(args.json, doc)
     if args.plot is not None:
         from .plots import figure2

@@ -38,6 +38,7 @@ from .engine import Engine, Settings, design_rows, residual_fraction, state_gues
 from .problem import INTERPOLATIONS, check_records, window_plan
 from .screen import screen_terms
 from .selection import penalty, select as select_terms
+from .solver import PHI_STOP, horizon
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
 
@@ -149,6 +150,14 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
+    if meta["hypersensitive"]:
+        dt = float(np.mean([r.dt for r in used]))
+        warnings.warn(RefineWarning(
+            f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
+            f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
+            f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
+            "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
+            "does)"), stacklevel=2)
     if meta["effective_fraction"] < LOW_FRACTION:
         warnings.warn(RefineWarning(
             f"output-error refinement: the residual is strongly correlated (N_eff/N = {meta['effective_fraction']:.3g}): "
@@ -200,8 +209,11 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                                lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide), twins)
             bar.update()
         fraction = residual_fraction(engine, sol)
+    reach, full = horizon(sol.stages), int(max(r.n_samples for r in used))
     info = {"refine": {  # to_model adds the substeps and the interpolation
-        "segment_length": int(sol.length), "stages": sol.stages,
+        "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach,
+        "hypersensitive": bool(sol.length < full and reach is not None and reach < full),
+        "penalty": sol.penalty,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
         "effective_fraction": round(fraction, 4)}}
     return to_model(engine, sol, info), screened

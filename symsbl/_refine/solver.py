@@ -23,7 +23,7 @@ from .._trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
 from .sensitivity import Passes
 
-__all__ = ["Solution", "fit", "lm", "noise_precisions"]
+__all__ = ["Solution", "fit", "lm", "noise_precisions", "horizon", "PHI_STOP"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -50,6 +50,9 @@ class Solution:
     stages: list = field(default_factory=list)
     n_pass: int = 0
     active: np.ndarray | None = None
+    #: The nats per term selection asked for; refits' evidence for terms the posterior put below it (by index).
+    penalty: float | None = None
+    confirmed: dict = field(default_factory=dict)
 
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -178,6 +181,14 @@ def _longest(length: int, phi: float) -> int:
     if phi <= np.e:
         return np.iinfo(np.int64).max
     return int(length * np.log(PHI_STOP) / np.log(phi))
+
+
+def horizon(stages: list) -> int | None:
+    """Samples within which the fitted model amplifies a state error :data:`PHI_STOP`-fold, from the growth
+    measured over the last stage's segments (None when it does not grow: a contracting system)."""
+    measured = [st for st in stages if not np.isnan(st.get("growth", np.nan))]  # inf: a growth past doubles
+    longest = _longest(int(measured[-1]["length"]), float(measured[-1]["growth"])) if measured else None
+    return None if longest in (None, np.iinfo(np.int64).max) else max(int(longest), 1)
 
 
 def _growth(end_S, npar: int, scale: np.ndarray) -> float:
