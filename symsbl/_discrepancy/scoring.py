@@ -25,8 +25,7 @@ import numpy as np
 from .._errors import SimulationError
 from .._model import IdentifiedModel
 from .._refine.candidates import prior
-from .._refine.engine import Engine, Settings, residual_fraction, to_model
-from .._refine.solver import horizon
+from .._refine.engine import Engine, Settings, record_horizon, residual_fraction, to_model
 from .._refine.problem import window_plan
 from .._refine.screen import _reduced
 from .._signals import Sampled
@@ -114,15 +113,11 @@ class Scorer:
     def fitted(self) -> IdentifiedModel:
         return to_model(self.engine, self.solution, {"refine": {"log_evidence": self.log_evidence}})
 
-    @property
+    @functools.cached_property
     def horizon(self) -> int | None:
         """Samples within which the fitted model amplifies a state error 10^4-fold, when that is shorter than the
         longest record (a hypersensitive record under this model); else None."""
-        return self._within(self.solution)
-
-    def _within(self, sol) -> int | None:
-        reach = horizon(sol.stages)
-        return reach if reach is not None and reach < max(r.n_samples for r in self.records) else None
+        return record_horizon(self.engine, self.solution)
 
     def screen(self, candidates) -> np.ndarray:
         """The quadratic-model gain of each candidate (nats, before its penalty), from one sensitivity pass on
@@ -178,7 +173,8 @@ class Scorer:
             out.append({"gain": float(post.log_evidence - base.posterior.log_evidence),
                         "fraction": residual_fraction(engine, sol),
                         "model": to_model(engine, sol, {"refine": {"log_evidence": float(post.log_evidence)}}),
-                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.w, "horizon": self._within(sol)})
+                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.w,
+                        "horizon": record_horizon(engine, sol)})
         return out
 
     def initial_states(self) -> list[np.ndarray]:

@@ -34,11 +34,12 @@ from .._model import IdentifiedModel
 from .._progress import Progress
 from .._trajectory import Trajectory
 from .candidates import Rebased, candidates as propose, extend, prior
-from .engine import Engine, Settings, design_rows, residual_fraction, state_guess, stopwatch, to_model
+from .engine import (Engine, Settings, design_rows, record_horizon, residual_fraction, state_guess, stopwatch,
+                     to_model)
 from .problem import INTERPOLATIONS, check_records, window_plan
 from .screen import screen_terms
 from .selection import penalty, select as select_terms
-from .solver import PHI_STOP, horizon
+from .solver import PHI_STOP
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES"]
 
@@ -209,10 +210,9 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                                lambda wide: penalty(n_obs, n_candidates) / residual_fraction(engine, wide), twins)
             bar.update()
         fraction = residual_fraction(engine, sol)
-    reach, full = horizon(sol.stages), int(max(r.n_samples for r in used))
+    reach = record_horizon(engine, sol)
     info = {"refine": {  # to_model adds the substeps and the interpolation
-        "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach,
-        "hypersensitive": bool(sol.length < full and reach is not None and reach < full),
+        "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach, "hypersensitive": reach is not None,
         "penalty": sol.penalty,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
         "effective_fraction": round(fraction, 4)}}

@@ -25,10 +25,10 @@ from .laplace import reduce_model
 from .problem import Parameterisation, Records, choose_substeps
 from .selection import free_positions, with_terms
 from .sensitivity import Passes
-from .solver import Solution, fit
+from .solver import PHI_STOP, Solution, _growth, _resegment, _state_scale, fit, horizon
 
 __all__ = ["Engine", "Settings", "sign_jumps", "state_guess", "design_rows", "to_model", "stopwatch",
-           "residual_fraction"]
+           "residual_fraction", "record_horizon"]
 
 
 #: Samples whose spectrum sets the first segment length at most (the refinement's default sample budget).
@@ -194,6 +194,22 @@ class Engine:
         return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
                    length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
                    longest=longest)
+
+
+@np.errstate(over="ignore", invalid="ignore")  # a state error past doubles is an infinite growth
+def record_horizon(engine: Engine, sol: Solution) -> int | None:
+    """Samples within which ``sol``'s model amplifies a state error :data:`PHI_STOP`-fold, when that is shorter
+    than the longest record (a hypersensitive record); None otherwise. The segments' growth only suggests it (it
+    is extrapolated): it is measured over whole records, in one pass."""
+    passes, full = engine.passes, int(engine.passes.records.lengths.max())
+    reach = horizon(sol.stages)
+    if reach is None or reach >= full:
+        return None
+    passes.use_segments(sol.starts)
+    X0 = _resegment(passes, sol.theta, sol.X0, passes.segment_starts(full))
+    phi = _growth(passes.sensitivities(sol.theta, X0)[3], sol.theta.size, _state_scale(engine.guess, sol.X0))
+    passes.use_segments(sol.starts)
+    return horizon([{"length": full, "growth": phi}]) if phi > PHI_STOP else None
 
 
 def residual_fraction(engine: Engine, sol: Solution) -> float:

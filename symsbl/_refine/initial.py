@@ -17,7 +17,7 @@ from .._trajectory import Trajectory
 from .engine import _smoothing_widths, smooth_model, state_guess
 from .problem import Parameterisation, Records
 from .sensitivity import Passes
-from .solver import _growth, _state_scale, horizon, initial_states, noise_precisions
+from .solver import PHI_STOP, _growth, _state_scale, horizon, initial_states, noise_precisions
 
 __all__ = ["initial_state", "fitted_start", "short_horizons"]
 
@@ -65,8 +65,18 @@ def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.n
         x0, phi = _fit(model, data.slice(0, span), observed, x0, interpolation, substeps,
                        jit="auto" if span == n else False)
         if span == n:
-            return x0, horizon([{"length": span, "growth": phi}])
+            break
         span = min(n, span * GROWTH)
+    reach = horizon([{"length": span, "growth": phi}])
+    if reach is None or reach >= data.n_samples:
+        return x0, None
+    # the stretch's growth, extrapolated, only suggests it: measured over the whole record, in one pass
+    passes, rows = _passes(smooth_model(model, _smoothing_widths(model, [data])), data, observed, interpolation,
+                           substeps, jit=False)
+    passes.use_segments(np.array([0]))
+    with np.errstate(over="ignore", invalid="ignore"):
+        phi = _growth(passes.sensitivities(np.zeros(0), x0[None, :])[3], 0, _state_scale(rows, x0[None, :]))
+    return x0, (horizon([{"length": data.n_samples, "growth": phi}]) if phi > PHI_STOP else None)
 
 
 def short_horizons(model: IdentifiedModel, data: Trajectory, observed, *, interpolation: str, substeps: int,
