@@ -12,11 +12,13 @@ only public modules are :mod:`symsbl.systems` (ready-made systems) and :mod:`sym
 
 from importlib import metadata as _metadata
 
+from ._base import interrupt as _interrupt  # noqa: F401  first: Ctrl-C while the symsbl command imports is one line, not a traceback
 from . import systems
 
 # -- errors ----------------------------------------------------------------------------------
 from ._base.errors import (
     DataError,
+    DivergenceError,
     ExpressionError,
     LibraryError,
     MissingExtraError,
@@ -113,8 +115,8 @@ except _metadata.PackageNotFoundError:  # imported from a source tree that was n
 
 __all__ = [
     # errors
-    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError", "RefineWarning",
+    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "DivergenceError",
+    "ParameterError", "MissingExtraError", "RefineWarning",
     # symbolic terms and libraries
     "symbols", "casadi_to_sympy", "sympy_to_casadi", "Term", "Library", "polynomial", "elementwise", "inputs",
     "custom", "paper",

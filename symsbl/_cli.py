@@ -82,17 +82,21 @@ def _library(spec: str, states, inputs, degree: int):
 
 
 def _outputs(args, inputs: list) -> None:
-    """Check every output option before the work starts."""
-    from ._base.outputs import safe_output
+    """Check every output option before the work starts: each can be written, none is an input, no two
+    are one file."""
+    from ._base.outputs import distinct_outputs, safe_output
 
-    if getattr(args, "json", None):
+    if getattr(args, "json", None) is not None:
         safe_output(args.json, inputs, what="--json")
     plot = getattr(args, "plot", None)
-    if plot:
+    if plot is not None:
         if Path(plot).suffix.lower() not in PLOT_FORMATS:
             raise LibraryError(expected("--plot", f"a file ending in one of {list(PLOT_FORMATS)}", plot))
         safe_output(plot, inputs, what="--plot")
+    distinct_outputs([("--json", getattr(args, "json", None)), ("--plot", plot)])
     plots = getattr(args, "plots", None)
+    if plots == "":
+        raise DataError(expected("--plots", "a directory path", "''", "name the directory to write", raw=True))
     if plots and Path(plots).exists() and not Path(plots).is_dir():
         raise LibraryError(expected("--plots", "a directory (created if missing)", f"{plots!r}, which is a file",
                                     raw=True))
@@ -117,12 +121,14 @@ def _save_figure(fig, path) -> None:
 
 
 def _read(args, path, states, inputs, *, optional=()):
-    """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing."""
-    from ._data.io import read_columns, read_trajectory
+    """The record's ``states`` and ``inputs``; states in ``optional`` (unmeasured ones) may be missing. The file
+    is read once (a FIFO can be read only once)."""
+    from ._data.io import column_names, columns_trajectory, read_columns
 
     time = None if args.time == "" else args.time
+    columns = read_columns(path)
+    present = column_names(columns)
     if optional:
-        present = read_columns(path)
         absent = [s for s in states if s not in present and s not in optional]
         if absent:
             raise DataError(expected(
@@ -130,11 +136,11 @@ def _read(args, path, states, inputs, *, optional=()):
                 "measured; its velocity and latent states may be absent)", "no such column", raw=True))
         states = [s for s in states if s in present or s not in optional]
     try:
-        return read_trajectory(path, states=states, inputs=inputs, time=time, fs=args.fs)
+        return columns_trajectory(columns, path, states=states, inputs=inputs, time=time, fs=args.fs)
     except DataError:
         if optional or getattr(args, "kinematics", None) != "":
             raise
-        absent = [s for s in states if s not in read_columns(path)]  # a velocity left out, its pair not declared?
+        absent = [s for s in states if s not in present]  # a velocity left out, its pair not declared?
         if not absent or len(absent) == len(states):
             raise
         raise DataError(expected(f"--states {','.join(absent)}", "a column of DATA", "no such column",
@@ -170,16 +176,19 @@ def _cmd_identify(args) -> int:
             raise ParameterError(expected("--overlap", "1 unless --derivative is weak",
                                           f"--overlap {args.overlap} with --derivative {derivative}", raw=True))
         derivative = WeakForm(overlap=args.overlap)
-    model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
-                     refine=not args.no_refine,
-                     refine_options={"interpolation": args.interpolation} if args.interpolation else None)
+    try:
+        model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
+                         refine=not args.no_refine,
+                         refine_options={"interpolation": args.interpolation} if args.interpolation else None)
+    except SymsblError as err:  # name the option, not the keyword behind it
+        raise type(err)(str(err).replace("WeakForm.overlap:", "--overlap:", 1)) from None
     how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
     print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
           f"coefficients by {how}:")
     print(model)
     if "latent" in model.metadata:
         print(_latent_summary(model.metadata["latent"]))
-    if args.json:
+    if args.json is not None:
         model.save(args.json)
         print(f"model written to {args.json}")
     return 0 if any(eq.terms for eq in model.equations) else 1
@@ -207,12 +216,12 @@ def _cmd_validate(args) -> int:
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
     print(result.message)
-    if args.json:
-        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit}
-        if result.coverage is not None:
-            doc.update(coverage=result.coverage, noise_std=result.noise_std)
+    if args.json is not None:
+        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit,
+               **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
+               **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse})}
         _write_json(args.json, doc)
-    if args.plot:
+    if args.plot is not None:
         from .plots import figure2
 
         _save_figure(figure2(model, result), args.plot)
@@ -223,6 +232,7 @@ def _cmd_validate(args) -> int:
 def _cmd_discrepancy(args) -> int:
     from ._discrepancy import catalogue, discrepancy
     from ._discrepancy.inputs import describe_effects, read_effects
+    from ._base.outputs import same_file
 
     effects = catalogue(read_effects(args.effects) if args.effects else ())
     if args.list_effects:
@@ -233,6 +243,11 @@ def _cmd_discrepancy(args) -> int:
             raise DataError(expected(name, "a value (or --list-effects alone)", "none", raw=True))
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.held_out, args.effects])
+    if args.held_out is not None and (args.held_out == "" or same_file(args.held_out, args.data)):
+        raise DataError(expected("--held-out", "a record other than DATA (errors on the data a model was fitted to "
+                                 "say nothing of how it predicts)", repr(args.held_out) + ", which is DATA" *
+                                 (args.held_out != ""), "leave --held-out out to hold out the last 30 % of DATA",
+                                 raw=True))
     from ._derivatives.kinematics import parse_kinematics
 
     velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
@@ -242,10 +257,10 @@ def _cmd_discrepancy(args) -> int:
                          kinematics=args.kinematics or None, evidence=args.evidence,
                          search_library=not args.no_library)
     print(report)
-    if args.json:
+    if args.json is not None:
         _write_json(args.json, report.to_json())
         print(f"report written to {args.json}")
-    if args.plot:
+    if args.plot is not None:
         from .plots import discrepancy_figure
 
         _save_figure(discrepancy_figure(report, heldout), args.plot)
@@ -380,6 +395,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``symsbl`` console script; returns the exit code (see :data:`EXIT_CODES`)."""
+    from ._base.interrupt import command_started
+
+    command_started()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import traceback
 import warnings
 
 from ._base.errors import MissingExtraError, SymsblError
@@ -33,6 +34,15 @@ REPEAT_SECONDS = 0.5
 
 _INTERRUPTED = (130, "interrupted")
 
+#: What takes less memory, by command.
+_LIGHTER = {
+    "identify": "use a shorter record, fewer candidate terms or a lower --degree",
+    "discrepancy": "use a shorter record or --no-library",
+    "validate": "use a shorter record or fewer --band draws",
+    "simulate": "use a shorter record or fewer --band draws",
+    "demo": "use --quick",
+}
+
 
 def fail(command: str, message: str, code: int) -> int:
     """Print ``symsbl <command>: error: <message>`` on standard error (if it is still open); return ``code``."""
@@ -42,9 +52,13 @@ def fail(command: str, message: str, code: int) -> int:
 
 
 def run_command(command: str, work, quiet: bool = False) -> int:
-    """``work()`` (which returns the exit code) with every failure, and Ctrl-C, as one line on standard error."""
+    """``work()`` (which returns the exit code) with every failure, and Ctrl-C, as one line on standard error.
+
+    A reader of standard output that leaves early (``symsbl identify ... | head -3``) does not stop the work:
+    what is printed after it left is dropped, the files are still written.
+    """
     try:
-        with sigint_recorded(repeat=REPEAT_SECONDS) as pressed:
+        with sigint_recorded(repeat=REPEAT_SECONDS) as pressed, _reader_may_leave():
             code, message = _outcome(command, work, quiet, pressed)
             if pressed():  # whatever a library on the way made of the interrupt
                 code, message = _INTERRUPTED
@@ -53,6 +67,53 @@ def run_command(command: str, work, quiet: bool = False) -> int:
     if code == _INTERRUPTED[0]:
         interrupt_handled()
     return code if message is None else fail(command, message, code)
+
+
+class _Stdout:
+    """Standard output that goes on, into /dev/null, once its reader has left (EPIPE)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _left(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())  # the buffered text, and what follows, goes nowhere
+        os.close(devnull)
+
+    def write(self, text):
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._left()
+            return len(text)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._left()
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _reader_may_leave():
+    """Standard output as :class:`_Stdout` inside the block (when it is a file descriptor: a pipe, a terminal)."""
+    stream = sys.stdout
+    try:
+        stream.fileno()
+    except Exception:  # noqa: BLE001 - captured or replaced output: nothing to guard
+        yield
+        return
+    guarded = _Stdout(stream)
+    sys.stdout = guarded
+    try:
+        yield
+    finally:
+        guarded.flush()
+        if sys.stdout is guarded:
+            sys.stdout = stream
 
 
 def _warning_line(command: str, pressed):
@@ -75,9 +136,11 @@ def _outcome(command: str, work, quiet: bool, pressed) -> tuple[int, str | None]
     except (SymsblError, MissingExtraError) as exc:
         return 2, " ".join(str(exc).split())
     except MemoryError:
-        return 2, "out of memory: use a shorter record, fewer candidate terms or a lower --degree"
-    except Exception as exc:  # noqa: BLE001 - a bug: one line unless asked for the traceback
+        return 2, "out of memory: " + _LIGHTER.get(command, _LIGHTER["identify"])
+    except Exception as exc:  # noqa: BLE001 - a bug: one line, after the traceback when asked for it
         if os.environ.get("SYMSBL_TRACEBACK") and not pressed():
-            raise
+            with contextlib.suppress(OSError, ValueError):
+                traceback.print_exc(file=sys.stderr)
+            return 3, f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); please report it"
         return 3, (f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
                    "rerun with SYMSBL_TRACEBACK=1 and report it")

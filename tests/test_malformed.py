@@ -108,6 +108,56 @@ CLI_CASES = [
       "--json", "{d}/train.csv"], 2,
      "symsbl discrepancy: error: --json: expected an output file other than the inputs, received '{d}/train.csv', "
      "which is the input '{d}/train.csv'; choose another file name; inputs are never modified"),
+    ("empty json path", None, ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", ""], 2,
+     "symsbl identify: error: --json: expected a file path, received ''; name the file to write"),
+    ("discrepancy json and plot on one file", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",
+      "--json", "{d}/r.png", "--plot", "{d}/r.png"], 2,
+     "symsbl discrepancy: error: --plot: expected a file other than --json's, received '{d}/r.png', which --json "
+     "writes too; give each output its own file"),
+    ("json through a link into a missing directory", "dangling",
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/dangling.json"], 2,
+     "symsbl identify: error: --json: expected a file in an existing directory, received '{d}/dangling.json' (a "
+     "symbolic link to '{d}/nowhere/m.json'); create '{d}/nowhere' first"),
+    ("json into a socket", "socket", ["identify", "{d}/train.csv", "--states", "x1,x2", "--json", "{d}/sock"], 2,
+     "symsbl identify: error: --json: expected a file, a FIFO or a character device, received '{d}/sock', which is "
+     "a socket; choose a file name"),
+    ("overlap beyond the record", None,
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--overlap", "100000"], 2,
+     "symsbl identify: error: --overlap: expected at most 2048 for a record of 4097 samples (a window spans at least "
+     "2 x overlap sample intervals), received 100000; use 2 (half overlap) or 3"),
+    ("overlap whose rows cannot be whitened", None,
+     ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--overlap", "8"], 2,
+     "symsbl identify: error: --overlap: expected an overlap whose rows a filter of at most 4096 taps whitens, "
+     "received 8 (with windows every 4 samples the noise the rows share is singular to rounding); use 2 (half "
+     "overlap) or 3"),
+    ("a model term that divides by zero", "div0", ["validate", "{d}/div0.json", "{d}/train.csv"], 2,
+     "symsbl validate: error: model JSON.equations[1].terms[0].term: expected a term that is finite where its "
+     "variables are, received 'x1/0', which divides by zero; correct or remove the term"),
+    ("a base term that divides by zero", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1/(1-1)"], 2,
+     "symsbl discrepancy: error: --base (state 'x2'): expected a term that is finite where its variables are, "
+     "received 'x1/(1-1)', which divides by zero; correct or remove the term"),
+    ("a band of a billion draws", None, ["validate", "{d}/model.json", "{d}/train.csv", "--band", "1000000000"], 2,
+     "symsbl validate: error: --band: expected at most 10000 Monte Carlo draws for 4097 samples of 2 states (2 GiB "
+     "held at once), received 1000000000; 100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"),
+    ("held-out record that is DATA", "link",
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",
+      "--held-out", "{d}/link.csv"], 2,
+     "symsbl discrepancy: error: --held-out: expected a record other than DATA (errors on the data a model was "
+     "fitted to say nothing of how it predicts), received '{d}/link.csv', which is DATA; leave --held-out out to hold "
+     "out the last 30 % of DATA"),
+    ("empty held-out path", None,
+     ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",
+      "--held-out", ""], 2,
+     "symsbl discrepancy: error: --held-out: expected a record other than DATA (errors on the data a model was "
+     "fitted to say nothing of how it predicts), received ''; leave --held-out out to hold out the last 30 % of "
+     "DATA"),
+    ("a directory as DATA", "folder", ["identify", "{d}/folder.csv", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/folder.csv: expected an existing data file, received a directory"),
+    ("a socket as DATA", "socket data", ["identify", "{d}/sock.csv", "--states", "x1,x2"], 2,
+     "symsbl identify: error: {d}/sock.csv: expected an existing data file, received a device or socket, not a "
+     "file"),
     ("plot with an unknown extension", None, ["validate", "{d}/model.json", "{d}/train.csv", "--plot", "{d}/x.xyz"], 2,
      "symsbl validate: error: --plot: expected a file ending in one of ['.png', '.pdf', '.svg', '.jpg', '.jpeg', "
      "'.eps', '.ps', '.tif', '.tiff', '.webp'], received '{d}/x.xyz'"),
@@ -179,6 +229,22 @@ def _make(d: Path, kind: str | None) -> None:
         _write(d / "exits.py", "import sys\nsys.exit(0)\n")
     elif kind == "dead":
         _dead_input(d)
+    elif kind == "dangling" and not (d / "dangling.json").is_symlink():
+        (d / "dangling.json").symlink_to(d / "nowhere" / "m.json")
+    elif kind in ("socket", "socket data"):
+        import socket
+
+        where = d / ("sock" if kind == "socket" else "sock.csv")
+        if not where.exists():
+            with socket.socket(socket.AF_UNIX) as server:  # the socket file stays once it is closed
+                server.bind(str(where))
+    elif kind == "folder":
+        (d / "folder.csv").mkdir(exist_ok=True)
+    elif kind == "div0":
+        doc = json.loads((d / "model.json").read_text())
+        doc["equations"][1]["terms"][0]["term"] = "x1/0"
+        del doc["equations"][1]["rhs"]
+        (d / "div0.json").write_text(json.dumps(doc))
 
 
 @pytest.mark.parametrize("name, kind, argv, code, line", CLI_CASES, ids=[c[0] for c in CLI_CASES])
@@ -270,7 +336,23 @@ MODEL_CASES = [
      "model JSON.equations[1].terms[0].std: expected a finite number >= 0 or null, received -1.0"),
     ("not an object", lambda d: d.clear() or d.update({"format": "symsbl-model", "version": 2, "states": "x1"}),
      "model JSON.states: expected a list of names, received 'x1'"),
+    ("20000 terms (a 1 MB file)", lambda d: _set(d, ("equations", 1, "terms"), [{"term": "x1", "coef": 1.0}] * 20000),
+     "model JSON.equations: expected at most 1000 terms in all (the most a model of this release is re-simulated "
+     "with), received 20001; a model file holds the terms an identification kept; check where this one came from"),
+    ("100 terms of 184 nodes each", lambda d: _heavy(d, 100),
+     "model JSON.equations: expected at most 12000 expression nodes in all (the most a model of this release is "
+     "re-simulated with), received 18400; a model file holds the terms an identification kept; check where this "
+     "one came from"),
 ]
+
+
+def _heavy(doc, n: int):
+    """``n`` terms of 184 expression nodes each in the second equation (a 54 kB file took 684 s to validate)."""
+    eq = doc["equations"][1]
+    eq["terms"] = [{"term": "+".join(f"sin({j + 1}*x1+{k}*x2)*x2**{j % 4}" for j in range(25)), "coef": 1e-12}
+                   for k in range(n)]
+    del eq["rhs"], eq["covariance"]
+    doc.pop("covariance", None)
 
 
 @pytest.mark.parametrize("name, change, message", MODEL_CASES, ids=[c[0] for c in MODEL_CASES])
@@ -428,9 +510,7 @@ def test_python_api_refuses_what_it_cannot_do():
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
     # as from an interactive shell: SIGINT at its default, whatever the test process inherited (a program started
     # with SIGINT ignored keeps ignoring it, as it should)
-    proc = subprocess.Popen([sys.executable, "-u", "-m", "symsbl", "demo", "--quick"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = _command(["demo", "--quick"], cwd=tmp_path)
     # interrupt once the demo is running (its header is printed after the imports, which on a loaded machine
     # can take several seconds; Ctrl-C during the imports is Python's own KeyboardInterrupt)
     assert proc.stdout.readline().startswith("symsbl demo:")
@@ -474,3 +554,186 @@ def test_ctrl_c_that_a_library_swallows_still_ends_the_command_as_interrupted(sw
     finally:
         signal.signal(signal.SIGINT, previous)
     assert capsys.readouterr().err == "symsbl demo: error: interrupted\n"
+
+
+def _lab_record(tmp_path):
+    t = np.arange(64) / 1000.0
+    return t, np.column_stack([np.sin(20 * t), np.cos(20 * t)])
+
+
+@pytest.mark.parametrize("codec", ["utf-16", "utf-16-le", "utf-16-be"])
+def test_a_utf16_spreadsheet_export_is_read(tmp_path, codec):
+    t, x = _lab_record(tmp_path)
+    text = "t\tx1\tx2\r\n" + "".join(f"{a!r}\t{b!r}\t{c!r}\r\n" for a, b, c in np.column_stack([t, x]).tolist())
+    path = tmp_path / "unicode.csv"
+    path.write_bytes(text.encode(codec))  # "utf-16" writes a byte-order mark, the others none
+    record = symsbl.read_trajectory(path, states=["x1", "x2"])
+    np.testing.assert_array_equal(record.states, x)
+
+
+def test_an_unused_empty_or_text_column_does_not_refuse_the_file(tmp_path):
+    t, x = _lab_record(tmp_path)
+    rows = [f"{a!r},{b!r},{c!r}" for a, b, c in np.column_stack([t, x]).tolist()]
+    cases = {"every line": ["t,x1,x2,"] + [r + "," for r in rows],
+             "data lines": ["t,x1,x2"] + [r + "," for r in rows],
+             "a notes column": ["t,x1,note,x2"] + [r.replace(",", ",ok,", 2).replace(",ok,", ",", 1) for r in rows]}
+    for name, lines in cases.items():
+        path = tmp_path / f"{name}.csv"
+        path.write_text("\n".join(lines) + "\n")
+        np.testing.assert_array_equal(symsbl.read_trajectory(path, states=["x1", "x2"]).states, x, err_msg=name)
+    with pytest.raises(symsbl.DataError, match=exactly(
+            f"{tmp_path / 'a notes column.csv'}: column 'note' at line 2: expected a number, received 'ok'; repair "
+            "or remove the row")):
+        symsbl.read_trajectory(tmp_path / "a notes column.csv", states=["x1", "note"])
+
+
+def test_a_fifo_is_read_as_data(files, tmp_path, capsys):
+    import threading
+
+    fifo = tmp_path / "stream.csv"
+    os.mkfifo(fifo)
+    content = (files / "train.csv").read_bytes()
+
+    def feed():
+        with open(fifo, "wb") as fh:
+            fh.write(content)
+
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    code, out, err = run(["identify", str(fifo), "--states", "x1,x2", "--inputs", "F", "--no-refine",
+                          "--library", "poly", "--degree", "1"], capsys)
+    thread.join(10)
+    assert (code, err) == (0, "") and out.startswith("identified from 4097 samples")
+
+
+def _diverging_model(files: Path) -> Path:
+    doc = json.loads((files / "model.json").read_text())
+    eq = doc["equations"][1]
+    eq["terms"] = [{"term": "x1**3", "coef": 1e16}]
+    eq["covariance"] = [[0.0]]
+    del eq["rhs"]
+    doc.pop("covariance", None)
+    path = files.parent / f"{files.name}-diverging.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _raising(exc):
+    def command(*args, **kwargs):
+        raise exc
+    return command
+
+
+#: (failure, what the command does, exit code, the last line on standard error)
+EXIT_PATHS = [
+    ("no model found", lambda args: 1, 1, None),
+    ("bad input", _raising(symsbl.DataError("DATA: expected a record, received none")), 2,
+     "symsbl demo: error: DATA: expected a record, received none"),
+    ("missing extra", _raising(symsbl.MissingExtraError("matplotlib: expected it installed, received none")), 2,
+     "symsbl demo: error: matplotlib: expected it installed, received none"),
+    ("out of memory", _raising(MemoryError()), 2, "symsbl demo: error: out of memory: use --quick"),
+    ("a bug", _raising(ZeroDivisionError("division by zero")), 3,
+     "symsbl demo: error: internal error (ZeroDivisionError: division by zero); {advice}"),
+    ("Ctrl-C", _raising(KeyboardInterrupt()), 130, "symsbl demo: error: interrupted"),
+]
+
+
+@pytest.mark.parametrize("traceback", [None, "1"], ids=["plain", "SYMSBL_TRACEBACK=1"])
+@pytest.mark.parametrize("name, command, code, line", EXIT_PATHS, ids=[p[0] for p in EXIT_PATHS])
+def test_the_exit_code_table_holds_on_every_failure_path(monkeypatch, capsys, traceback, name, command, code, line):
+    import symsbl._cli as cli
+
+    if traceback is None:
+        monkeypatch.delenv("SYMSBL_TRACEBACK", raising=False)
+    else:
+        monkeypatch.setenv("SYMSBL_TRACEBACK", traceback)
+    monkeypatch.setattr(cli, "_cmd_demo", command)
+    got, _, err = run(["demo"], capsys)
+    assert got == code and code in EXIT_CODES
+    lines = err.splitlines()
+    if line is None:
+        assert err == ""
+        return
+    advice = "please report it" if traceback else "rerun with SYMSBL_TRACEBACK=1 and report it"
+    assert lines[-1] == line.format(advice=advice)
+    if code == 3 and traceback:  # the traceback, then the one line
+        assert lines[0] == "Traceback (most recent call last):" and "ZeroDivisionError" in lines[-2]
+    else:
+        assert len(lines) == 1
+
+
+@pytest.mark.parametrize("traceback", [None, "1"], ids=["plain", "SYMSBL_TRACEBACK=1"])
+def test_real_failures_keep_their_exit_codes_with_and_without_tracebacks(files, monkeypatch, capsys, traceback):
+    if traceback is None:
+        monkeypatch.delenv("SYMSBL_TRACEBACK", raising=False)
+    else:
+        monkeypatch.setenv("SYMSBL_TRACEBACK", traceback)
+    diverging = _diverging_model(files)
+    code, out, err = run(["validate", str(diverging), str(files / "train.csv")], capsys)
+    assert (code, err) == (1, "") and out.startswith("the identified model diverged in simulation at t = ")
+    code, _, err = run(["validate", str(files / "model.json"), str(files / "train.csv"), "--band", "-2"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    import symsbl._validate.validate as validation
+
+    monkeypatch.setattr(validation, "validate_model", _raising(ZeroDivisionError("division by zero")))
+    code, _, err = run(["validate", str(files / "model.json"), str(files / "train.csv")], capsys)
+    assert code == 3 and err.endswith("internal error (ZeroDivisionError: division by zero); "
+                                      + ("please report it\n" if traceback else
+                                         "rerun with SYMSBL_TRACEBACK=1 and report it\n"))
+
+
+def test_a_model_that_diverges_at_the_first_step_exits_1(files, capsys):
+    doc = json.loads((files / "model.json").read_text())
+    doc["equations"][1]["terms"] = [{"term": "x1**3", "coef": 1e300}]
+    doc["equations"][1]["covariance"] = [[0.0]]
+    del doc["equations"][1]["rhs"]
+    doc.pop("covariance", None)
+    path = files.parent / f"{files.name}-first-step.json"
+    path.write_text(json.dumps(doc))
+    code, out, err = run(["validate", str(path), str(files / "train.csv")], capsys)
+    assert (code, err) == (1, "")
+    assert out == "the identified model diverged in simulation at t = 0.00012207 s (of 0.5 s); it is unstable on " \
+                  "this input.\n"
+
+
+#: The environment of a command run in a subprocess: this checkout's symsbl, wherever it runs.
+HERE = {**os.environ, "PYTHONPATH": str(Path(symsbl.__file__).parents[1])}
+
+
+def _command(argv, **kw):
+    return subprocess.Popen([sys.executable, "-u", "-m", "symsbl", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=HERE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("delay", [0.2, 0.6])
+def test_ctrl_c_while_the_command_starts_is_one_line_and_exit_130(tmp_path, delay):
+    proc = _command(["demo", "--quick"], cwd=tmp_path)
+    time.sleep(delay)  # the imports take a second or more: numpy, scipy, sympy, CasADi
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert (proc.returncode, err) == (130, "symsbl demo: error: interrupted\n")
+
+
+def test_ctrl_c_right_after_the_imports_is_one_line_and_exit_130(tmp_path):
+    script = ("import sys; sys.argv = ['symsbl', 'demo']; import os, signal, time, symsbl; "
+              "os.kill(os.getpid(), signal.SIGINT); time.sleep(30)")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, env=HERE,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert (proc.returncode, proc.stderr) == (130, "symsbl demo: error: interrupted\n")
+    library = subprocess.run([sys.executable, "-c", "import signal, symsbl; "
+                              "assert signal.getsignal(signal.SIGINT) is signal.default_int_handler"],
+                             capture_output=True, text=True, timeout=60, env=HERE)
+    assert library.returncode == 0, library.stderr  # a program importing symsbl keeps Python's handler
+
+
+def test_a_reader_that_leaves_early_does_not_stop_the_command(files, tmp_path):
+    out = tmp_path / "model.json"
+    proc = _command(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F", "--no-refine",
+                     "--library", "poly", "--degree", "1", "--json", str(out)])
+    proc.stdout.close()  # as `| head -0` does
+    err = proc.stderr.read()
+    proc.stderr.close()
+    proc.wait(60)
+    assert (proc.returncode, err) == (0, "") and json.loads(out.read_text())["format"] == "symsbl-model"

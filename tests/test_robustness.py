@@ -32,6 +32,7 @@ import pytest
 from symsbl import (
     Multisine,
     OdeSystem,
+    RefineWarning,
     Sine,
     WeakForm,
     compare_to_truth,
@@ -225,7 +226,9 @@ def test_lorenz_with_polynomial_library():
     library = polynomial(system.states, 3)
     assert len(library) == 20
     for seed in range(3):
-        model = identify(clean.with_noise(0.004, seed=seed), library)
+        with pytest.warns(RefineWarning, match="the record is hypersensitive"):  # chaotic: said so
+            model = identify(clean.with_noise(0.004, seed=seed), library)
+        assert model.metadata["refine"]["hypersensitive"]
         truth = compare_to_truth(model, system, clean)
         assert truth.exact_support, (seed, truth.missing, truth.spurious, str(model))
         assert truth.max_error(min_share=0.05) < 0.005, (seed, _errors(truth))

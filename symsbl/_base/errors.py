@@ -10,7 +10,7 @@ from __future__ import annotations
 
 __all__ = [
     "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError", "RefineWarning", "expected", "describe",
+    "MissingExtraError", "RefineWarning", "DivergenceError", "expected", "describe",
 ]
 
 
@@ -32,6 +32,14 @@ class ExpressionError(LibraryError):
 
 class SimulationError(SymsblError):
     """A simulation could not be set up."""
+
+
+class DivergenceError(SimulationError):
+    """A simulation became non-finite (and could not be truncated); ``diverged_at`` is the time it did."""
+
+    def __init__(self, message: str, diverged_at: float):
+        super().__init__(message)
+        self.diverged_at = diverged_at
 
 
 class ParameterError(SymsblError):

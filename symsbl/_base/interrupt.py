@@ -6,6 +6,13 @@ layer drops one raised while it inspects an argument (and tries the next overloa
 inside a ``DM`` conversion comes back as another exception. While :func:`sigint_recorded` is active
 each SIGINT is also counted, so a caller can tell that Ctrl-C was pressed whatever became of the
 exception; a block that asks for it gets the interrupt raised again while it is still running.
+
+Before all that, while the ``symsbl`` command is still importing (a second or two: numpy, scipy, sympy,
+CasADi), an interrupt would end in a traceback of the import machinery, or in an ImportError that a C
+extension made of it. When this process is the command (the ``symsbl`` script or ``python -m symsbl``),
+importing this module, the package's first import, installs a handler that prints the one line and
+exits with 130 at once (nothing has been written yet); the command hands SIGINT back to Python
+(:func:`command_started`) before its own handling begins. A program that imports symsbl is not affected.
 """
 
 from __future__ import annotations
@@ -13,11 +20,12 @@ from __future__ import annotations
 import _thread
 import contextlib
 import ctypes
+import os
 import signal
 import sys
 import threading
 
-__all__ = ["sigint_recorded", "interrupt_handled"]
+__all__ = ["sigint_recorded", "interrupt_handled", "command_started"]
 
 _PRESSES = 0
 _REPEATS: dict[object, float] = {}  # the repeat intervals of the open blocks that asked for one
@@ -112,3 +120,30 @@ def interrupt_handled() -> None:
     if sys.implementation.name == "cpython":
         with contextlib.suppress(Exception):
             ctypes.pythonapi.PyRun_SimpleString(b"pass")
+
+
+def _command_process() -> bool:
+    if os.path.basename(sys.argv[0] if sys.argv else "") == "symsbl":  # the console script
+        return True
+    orig = getattr(sys, "orig_argv", [])  # python [options] -m symsbl ...
+    return any(a == "-m" and b == "symsbl" for a, b in zip(orig, orig[1:]))
+
+
+def _interrupted_starting(signum, frame):  # noqa: ARG001 - a signal handler's signature
+    command = sys.argv[1] if len(sys.argv) > 1 and sys.argv[1].isalpha() else ""
+    try:
+        os.write(2, f"symsbl{' ' + command if command else ''}: error: interrupted\n".encode())
+    finally:
+        os._exit(130)
+
+
+def command_started() -> None:
+    """SIGINT back to Python's default handler, if the start-up one is still installed."""
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) is _interrupted_starting:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+if (_command_process() and threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+    signal.signal(signal.SIGINT, _interrupted_starting)

@@ -40,7 +40,7 @@ import casadi as ca
 
 from .errors import SymsblError, expected
 
-__all__ = ["compiler", "jit_wrap", "jit_lookup", "cache_dir", "DISK_FILES", "CACHE_ENV"]
+__all__ = ["compiler", "jit_wrap", "jit_lookup", "cache_dir", "DISK_FILES", "CACHE_ENV", "MAX_AUTO_SOURCE"]
 
 #: Environment variable naming the directory of compiled libraries kept between runs ("off": none).
 CACHE_ENV = "SYMSBL_JIT_CACHE"
@@ -50,6 +50,10 @@ DISK_FILES = 256
 _STALE = 3600.0
 
 _FLAGS = ("-O3", "-march=native", "-w")  # -w: generated code (empty copies) warns harmlessly
+#: Largest generated C source compiled under ``jit="auto"`` (bytes): gcc's time grows faster than the source
+#: (measured: 80 kB in 1 s, 200 kB in 1.2 s, 730 kB in 15.5 s), so a larger function runs on the virtual
+#: machine, whose time is proportional to its size.
+MAX_AUTO_SOURCE = 256_000
 _MEMORY: OrderedDict[tuple, ca.Function] = OrderedDict()
 _MEMORY_SIZE = 64
 _SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
@@ -166,7 +170,7 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
     wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
     build = not only_cached or key in _SEEN  # compiled from the second request on: a structure used again
     try:
-        compiled = _compile(wrapper, cc, build)
+        compiled = _compile(wrapper, cc, build, MAX_AUTO_SOURCE if jit == "auto" else None)
     except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
         if jit is True:
             text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)
@@ -183,10 +187,11 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
     return compiled, True
 
 
-def _compile(fn: ca.Function, cc: str, build: bool = True) -> ca.Function | None:
+def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = None) -> ca.Function | None:
     """``fn`` as a compiled shared library: loaded from the disk cache, or (if ``build``) compiled.
 
-    Returns None when ``build`` is false and no compiled library exists. The compiler runs as a
+    Returns None when ``build`` is false, or its C source is longer than ``limit``, and no compiled
+    library exists. The compiler runs as a
     Python subprocess, so Ctrl-C during a compilation interrupts the program (a compiler started
     through ``system()``, as CasADi's own JIT does, ignores SIGINT in the caller while it runs).
     """
@@ -205,7 +210,7 @@ def _compile(fn: ca.Function, cc: str, build: bool = True) -> ca.Function | None
         if loaded is not None:
             _touch(library)
             return loaded
-    if not build:
+    if not build or (limit is not None and len(source) > limit):
         return None
     partial = os.path.join(directory, f".{digest}.{os.getpid()}.{next(_COUNTER)}")
     try:

@@ -10,8 +10,13 @@ header names are an error when the column is asked for, naming both positions.
 
 from __future__ import annotations
 
+import codecs
+import contextlib
 import csv
 import io
+import math
+import os
+import stat
 import re
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
@@ -23,7 +28,7 @@ from .._base.errors import DataError, expected
 from .._base.outputs import safe_output, write_atomic
 from .trajectory import Trajectory, check_magnitude, validate
 
-__all__ = ["read_trajectory", "write_trajectory", "read_columns", "FORMATS"]
+__all__ = ["read_trajectory", "write_trajectory", "read_columns", "columns_trajectory", "column_names", "FORMATS"]
 
 _MATLAB_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,62}$")
 _DECIMAL_COMMA = re.compile(r"^\s*[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?\s*$")
@@ -32,7 +37,21 @@ _DECIMAL_COMMA = re.compile(r"^\s*[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?\s*$")
 # ------------------------------------------------------------------------------------------- CSV
 
 
+#: Byte-order marks of a spreadsheet's "Unicode text" export (UTF-16) and of UTF-32, longest first.
+_BOMS = ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"), (codecs.BOM_UTF16_LE, "utf-16"),
+         (codecs.BOM_UTF16_BE, "utf-16"))
+
+
 def _decode(path: Path, raw: bytes) -> str:
+    codec = next((name for bom, name in _BOMS if raw.startswith(bom)), None)
+    head = raw[:4096]
+    if codec is None and b"\x00" in head and not len(raw) % 2 and all(head[0::2]) != all(head[1::2]):
+        codec = "utf-16-le" if not any(head[1::2]) else "utf-16-be" if not any(head[0::2]) else None  # no mark
+    if codec is not None:
+        with contextlib.suppress(UnicodeDecodeError):
+            text = raw.decode(codec)
+            if "\x00" not in text:
+                return text
     if b"\x00" in raw:
         raise DataError(expected(str(path), "a text CSV file", "binary content (NUL bytes)",
                                  "export the record as CSV text, .npz or .mat", raw=True))
@@ -62,9 +81,9 @@ def _number_cells(cells: Sequence[str], decimal_comma: bool) -> list[float] | No
     return out
 
 
-def _csv_rows(path: Path) -> tuple[list[str], list[tuple[int, list[str]]], str]:
+def _csv_rows(path: Path, raw: bytes) -> tuple[list[str], list[tuple[int, list[str]]], str]:
     """Header, numbered data rows and the delimiter of a CSV file; comments, units and blanks removed."""
-    text = _decode(path, path.read_bytes())
+    text = _decode(path, raw)
     lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()
              and not line.lstrip().startswith("#")]
     if not lines:
@@ -78,27 +97,39 @@ def _csv_rows(path: Path) -> tuple[list[str], list[tuple[int, list[str]]], str]:
     return [h.strip() for h in header], rows, delim
 
 
-def _read_csv(path: Path) -> dict[str, np.ndarray]:
-    header, rows, delim = _csv_rows(path)
+def _read_csv(path: Path, raw: bytes) -> dict[str, np.ndarray]:
+    header, rows, delim = _csv_rows(path, raw)
     decimal_comma = delim != ","
-    if rows and _number_cells(rows[0][1], decimal_comma) is None and len(rows) > 1 \
-            and _number_cells(rows[1][1], decimal_comma) is not None and len(rows[0][1]) == len(header):
+
+    def _numbers(cells):
+        return sum(_number_cells([c], decimal_comma) is not None for c in cells if c.strip())
+
+    if len(rows) > 1 and _numbers(rows[0][1]) == 0 < _numbers(rows[1][1]):
         rows = rows[1:]  # a units row: "s, m, m/s, N"
+    while header and not header[-1] and all(len(r) >= len(header) and not r[len(header) - 1].strip() for _, r in rows):
+        header = header[:-1]  # an empty column after a trailing delimiter on every line
     width = len(header)
     values = np.empty((len(rows), width))
+    bad: dict[int, str] = {}  # the first cell that is not a number, by column: an error only if the column is used
     for k, (lineno, row) in enumerate(rows):
+        if len(row) > width and not any(c.strip() for c in row[width:]):
+            row = row[:width]  # a trailing delimiter on data lines only
         if len(row) != width:
             raise DataError(expected(f"{path}: line {lineno}", f"{width} fields, one per header column",
                                      f"{len(row)} field{'s' * (len(row) != 1)}", "every row needs one value per column",
                                      raw=True))
         numbers = _number_cells(row, decimal_comma)
         if numbers is None:
-            bad = next(j for j, c in enumerate(row) if _number_cells([c], decimal_comma) is None)
-            raise DataError(expected(f"{path}: column {header[bad]!r} at line {lineno}", "a number",
-                                     row[bad].strip() or "an empty cell", "repair or remove the row",
-                                     raw=not row[bad].strip()))
+            cells = [_number_cells([c], decimal_comma) for c in row]
+            for j in (j for j, v in enumerate(cells) if v is None and j not in bad):
+                bad[j] = expected(f"{path}: column {header[j]!r} at line {lineno}", "a number", row[j].strip()
+                                  or "an empty cell", "repair or remove the row", raw=not row[j].strip())
+            numbers = [math.nan if v is None else v[0] for v in cells]
         values[k] = numbers
-    return _named_columns(path, header, values.T)
+    columns = _named_columns(path, header, values.T)
+    if bad:
+        columns[_INVALID] = {header[j]: message for j, message in bad.items()}  # type: ignore[assignment]
+    return columns
 
 
 def _named_columns(path: Path, names: Sequence[str], columns) -> dict[str, np.ndarray]:
@@ -114,27 +145,31 @@ def _named_columns(path: Path, names: Sequence[str], columns) -> dict[str, np.nd
 
 
 _DUPLICATES = "\x00duplicates"
+_INVALID = "\x00invalid"  # columns with a cell that is not a number: the error to raise if one is used
 
 
 # ------------------------------------------------------------------------------------ npz and mat
 
 
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    if not zipfile.is_zipfile(path):
+def _read_npz(path: Path, raw: bytes | None) -> dict[str, np.ndarray]:
+    source = path if raw is None else io.BytesIO(raw)
+    if not zipfile.is_zipfile(source):
         raise DataError(expected(str(path), "a readable .npz file (a zip archive written by numpy.savez)",
                                  "a file that is not a zip archive", raw=True))
+    if raw is not None:
+        source.seek(0)
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with np.load(source, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
     except Exception as err:  # noqa: BLE001 - any failure of a foreign file is a data error
         raise DataError(expected(str(path), "a readable .npz file (numpy.savez)", _reason(err), raw=True)) from None
 
 
-def _read_mat(path: Path) -> dict[str, np.ndarray]:
+def _read_mat(path: Path, raw: bytes | None) -> dict[str, np.ndarray]:
     from scipy.io import loadmat
 
     try:
-        content = loadmat(str(path))
+        content = loadmat(str(path) if raw is None else io.BytesIO(raw))
     except Exception as err:  # noqa: BLE001 - scipy raises many kinds on corrupt files
         raise DataError(expected(str(path), "a readable MATLAB .mat file (v4-v7.2)", _reason(err),
                                  "save with -v7 or export CSV", raw=True)) from None
@@ -183,16 +218,31 @@ def _format(path: Path):
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
-    """Every column of a ``.csv``, ``.npz`` or ``.mat`` file by name (the file is only read)."""
+    """Every column of a ``.csv``, ``.npz`` or ``.mat`` file (or a FIFO of one) by name; the file is only read.
+
+    A column with a cell that is not a number is kept aside: reading it (:func:`columns_trajectory`) names
+    the cell; an unused one does not stop the others from being read.
+    """
     path = Path(path)
     reader, _ = _format(path)
-    if not path.is_file():
-        what = "a directory" if path.is_dir() else "no such file"
-        raise DataError(expected(str(path), "an existing data file", what, raw=True))
     try:
-        return reader(path)
+        mode = os.stat(path).st_mode
+    except OSError as err:
+        what = "no such file" if isinstance(err, FileNotFoundError) else f"an error opening it ({err.strerror})"
+        raise DataError(expected(str(path), "an existing data file", what, raw=True)) from None
+    if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):
+        what = "a directory" if stat.S_ISDIR(mode) else "a device or socket, not a file"
+        raise DataError(expected(str(path), "an existing data file", what, raw=True))
+    try:  # a FIFO can be read once: its bytes are read here; a CSV file is read whole anyway
+        raw = path.read_bytes() if stat.S_ISFIFO(mode) or reader is _read_csv else None
+        return reader(path, raw)
     except PermissionError:
         raise DataError(expected(str(path), "a readable file", "no permission to read it", raw=True)) from None
+
+
+def column_names(columns: Mapping[str, np.ndarray]) -> list[str]:
+    """The names of the columns :func:`read_columns` found, sorted."""
+    return sorted(k for k in columns if k not in (_DUPLICATES, _INVALID) and k)
 
 
 def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndarray:
@@ -202,9 +252,12 @@ def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndar
                                  f"{len(dupes[name])} columns named {name!r} (positions {dupes[name]})",
                                  "rename the duplicates in the header", raw=True))
     if name not in columns:
-        available = sorted(k for k in columns if k != _DUPLICATES)
+        available = column_names(columns)
         raise DataError(expected(f"{path}: column {name!r}", f"a column among {available}", "no such column",
                                  "check --states/--inputs/--time against the header", raw=True))
+    message = columns.get(_INVALID, {}).get(name)
+    if message is not None:  # the first cell of the column that is not a number, worded as it was read
+        raise DataError(message)
     arr = np.asarray(columns[name])
     if arr.ndim == 2 and 1 in arr.shape:  # MATLAB stores vectors as 1xN or Nx1
         arr = arr.ravel()
@@ -289,10 +342,19 @@ def read_trajectory(
     (('x1', 'x2'), ('F',), True)
     """
     path = Path(path)
+    if not tuple(states):
+        raise DataError(expected("states", "at least one column name", "an empty list", raw=True))
+    return columns_trajectory(read_columns(path), path, states=states, inputs=inputs, time=time, fs=fs)
+
+
+def columns_trajectory(columns: Mapping[str, np.ndarray], path: str | Path, *, states: Sequence[str],
+                       inputs: Sequence[str] = (), time: str | None = "t", fs: float | None = None) -> Trajectory:
+    """The trajectory :func:`read_trajectory` reads, from the columns :func:`read_columns` returned for ``path``
+    (a file read once, as a FIFO must be)."""
+    path = Path(path)
     state_names, input_names = tuple(states), tuple(inputs)
     if not state_names:
         raise DataError(expected("states", "at least one column name", "an empty list", raw=True))
-    columns = read_columns(path)
     data = {name: _vector(columns, name, path) for name in state_names + input_names}
     lengths = {name: v.size for name, v in data.items()}
     if len(set(lengths.values())) > 1:

@@ -56,9 +56,10 @@ def predictive_log_likelihood(model, record, measured, settings, w: np.ndarray) 
     return float(np.sum(-0.5 * rr + 0.5 * passes.n_obs * np.log(w / (2 * np.pi))))
 
 
-def cross_validated_gain(scorer_of, without, with_effect, records, measured, settings) -> float:
+def cross_validated_gain(scorer_of, without, with_effect, records, measured, settings, horizons=None) -> float:
     """Sum over :func:`folds` of the predictive log-likelihood change from ``without`` to ``with_effect``
-    (structures), each fitted on the fold's halves by ``scorer_of(model, records)``."""
+    (structures), each fitted on the fold's halves by ``scorer_of(model, records)``; each fit's horizon (see
+    :attr:`~symsbl._discrepancy.scoring.Scorer.horizon`) is appended to the list ``horizons`` when given."""
     total = 0.0
     for fitted_on, predicted in folds(records):
         scores = []
@@ -69,6 +70,8 @@ def cross_validated_gain(scorer_of, without, with_effect, records, measured, set
                 scores.append(-math.inf)
                 continue
             model, w = scorer.fitted(), scorer.solution.w
+            if horizons is not None and scorer.horizon is not None:
+                horizons.append(scorer.horizon)
             scores.append(sum(predictive_log_likelihood(model, r, measured, settings, w) for r in predicted))
         if not np.isfinite(scores[0]) and not np.isfinite(scores[1]):
             continue

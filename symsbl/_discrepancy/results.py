@@ -28,6 +28,7 @@ class Decision(str, enum.Enum):
     UNEXPLAINED = "unexplained"
     REPLACED = "replaced"
     REMOVED = "removed"
+    CANNOT_TELL = "badly wrong, the record cannot tell why"
 
     def __str__(self) -> str:
         return self.value

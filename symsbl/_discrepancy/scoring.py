@@ -26,7 +26,7 @@ from .._base.errors import SimulationError
 from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
 from .._refine.candidates import prior
-from .._refine.engine import Engine, Settings, residual_fraction
+from .._refine.engine import Engine, Settings, record_horizon, residual_fraction
 from .._refine.problem import window_plan
 from .._refine.result import to_model
 from .._refine.screen import _reduced
@@ -113,6 +113,12 @@ class Scorer:
     def fitted(self) -> IdentifiedModel:
         return to_model(self.engine, self.solution, {"refine": {"log_evidence": self.log_evidence}})
 
+    @functools.cached_property
+    def horizon(self) -> int | None:
+        """Samples within which the fitted model amplifies a state error 10^4-fold, when that is shorter than the
+        longest record (a hypersensitive record under this model); else None."""
+        return record_horizon(self.engine, self.solution)
+
     def screen(self, candidates) -> np.ndarray:
         """The quadratic-model gain of each candidate (nats, before its penalty), from one sensitivity pass on
         evenly spaced windows of at most :data:`SCREEN_SAMPLES` samples, scaled to all the samples."""
@@ -166,7 +172,8 @@ class Scorer:
             out.append({"gain": float(post.log_evidence - base.posterior.log_evidence),
                         "fraction": residual_fraction(engine, sol),
                         "model": to_model(engine, sol, {"refine": {"log_evidence": float(post.log_evidence)}}),
-                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.w})
+                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.w,
+                        "horizon": record_horizon(engine, sol)})
         return out
 
     def initial_states(self) -> list[np.ndarray]:

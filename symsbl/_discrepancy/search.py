@@ -183,11 +183,34 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
                 residual_ratio=run.residual_ratio(scorer))
     by_label = {(avail[i].label): (avail[i], refitted[i]) for i in refitted}
     ratio = (step["residual_ratio"], run.input_share(scorer))
-    return DiscrepancyStep(**step, **_choose(run, model, scores, by_label, threshold, rule, ratio, err_held))
+    reaches = [r for r in [scorer.horizon] + [f.get("horizon") for f in refitted.values()] if r is not None]
+    chosen = _choose(run, model, scores, by_label, threshold, rule, ratio, err_held, reaches)
+    return DiscrepancyStep(**step, **_cannot_tell(run, scorer, chosen, ratio[0], err_held, reaches))
 
 
-def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> dict:
-    """The decision of one iteration, its verdict and, when something is added, the model after."""
+def _cannot_tell(run, scorer, chosen: dict, level: float, err_held: float, reaches: list) -> dict:
+    """``chosen``, unless its leading candidate failed the held-out check while the model misfits the record
+    (a residual above :data:`UNEXPLAINED_RATIO` x the noise level): then "no held-out gain" would blame the
+    candidate, and the honest verdict is that the model is badly wrong and this record cannot tell why. On a
+    hypersensitive record (the current model or a candidate's refit amplifying a state error 10^4-fold within
+    the record: ``reaches``, in samples) held-out simulations and predictions fail whatever the model; the
+    verdict says so."""
+    if chosen["decision"] is not Decision.NO_HELDOUT_GAIN or not level > UNEXPLAINED_RATIO:
+        return chosen
+    why = chosen["verdict"].removesuffix("; not added")
+    if reaches:
+        seconds = min(reaches) * float(np.mean([r.dt for r in scorer.records]))
+        why += (f"; the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold "
+                f"within {seconds:.3g} s), so held-out simulations and predictions fail whatever the model")
+    return dict(chosen, decision=Decision.CANNOT_TELL, verdict=(
+        f"the model is badly wrong (its residual stands at {level:.3g}x the measured noise level; held-out "
+        f"{run.error} error {100 * err_held:.3g} %) and this record cannot tell why: {why}; record a response that "
+        "tells the candidates apart (another excitation level or band) before adding any"))
+
+
+def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held, reaches: list) -> dict:
+    """The decision of one iteration, its verdict and, when something is added, the model after; the horizons of
+    the cross-validation's fits join ``reaches``."""
     ranked = [s for s in scores if s.admissible and s.label in by_label and np.isfinite(s.evidence_gain)]
     named = [s for s in ranked if s.family != OUTSIDE_CATALOGUE]
     best = ranked[0] if ranked else None
@@ -210,7 +233,7 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held) -> d
         (s for s in ranked if s is not best and s.effect != best.effect), None)
     if best.error_after is None:
         best = dataclasses.replace(best, error_after=run.err(fit["model"], run.heldout))
-    cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)
+    cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings, reaches)
     log_bf = best.evidence_gain - runner.evidence_gain if runner is not None else math.inf
     info = dict(added=best, bayes_factor=_bf(log_bf), runner_up=None if runner is None else runner.label,
                 confirmation=cv)

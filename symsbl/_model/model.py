@@ -205,7 +205,7 @@ class IdentifiedModel:
         return model_to_json(self)
 
     def save(self, path: str | Path) -> None:
-        """Write ``to_json()`` to ``path`` (through a temporary file renamed into place)."""
+        """Write ``to_json()`` to ``path``, renamed into place (a link's target; a FIFO or device written through)."""
         save_model(self, path)
 
     @classmethod

@@ -35,13 +35,14 @@ from .._model import IdentifiedModel
 from .._symbolic.library import Library
 from .candidates import Rebased, extend, prior
 from .candidates import candidates as propose
-from .engine import Engine, Settings, residual_fraction
+from .engine import Engine, Settings, record_horizon, residual_fraction
 from .options import MAX_SAMPLES, RefineOptions, as_options
 from .problem import check_records, window_plan
 from .result import to_model
 from .rows import design_rows, state_guess
 from .screen import screen_terms
 from .selection import select as select_terms
+from .solver import PHI_STOP
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES", "RefineOptions"]
 
@@ -160,6 +161,14 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
+    if meta["hypersensitive"]:
+        dt = float(np.mean([r.dt for r in used]))
+        warnings.warn(RefineWarning(
+            f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
+            f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
+            f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
+            "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
+            "does)"), stacklevel=2)
     if meta["effective_fraction"] < LOW_FRACTION:
         warnings.warn(RefineWarning(
             f"output-error refinement: the residual is strongly correlated (N_eff/N = {meta['effective_fraction']:.3g}): "
@@ -220,8 +229,10 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                                twins, rule)
             bar.update()
         fraction = residual_fraction(engine, sol)
+    reach = record_horizon(engine, sol)
     info = {"refine": {  # to_model adds the substeps and the interpolation
-        "segment_length": int(sol.length), "stages": sol.stages,
+        "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach, "hypersensitive": reach is not None,
+        "penalty": sol.penalty,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
         "effective_fraction": round(fraction, 4)}}
     return to_model(engine, sol, info), screened

@@ -21,10 +21,10 @@ from .problem import Parameterisation, Records, choose_substeps
 from .rows import design_rows, state_guess
 from .sensitivity import Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
-from .solver import Solution, fit
+from .solver import PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
 from .structure import free_positions, with_terms
 
-__all__ = ["Engine", "Settings", "residual_fraction"]
+__all__ = ["Engine", "Settings", "residual_fraction", "record_horizon"]
 
 
 #: Samples whose spectrum sets the first segment length at most (the refinement's default sample budget).
@@ -106,6 +106,22 @@ class Engine:
         return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
                    length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
                    longest=longest)
+
+
+@np.errstate(over="ignore", invalid="ignore")  # a state error past doubles is an infinite growth
+def record_horizon(engine: Engine, sol: Solution) -> int | None:
+    """Samples within which ``sol``'s model amplifies a state error :data:`PHI_STOP`-fold, when that is shorter
+    than the longest record (a hypersensitive record); None otherwise. The segments' growth only suggests it (it
+    is extrapolated): it is measured over whole records, in one pass."""
+    passes, full = engine.passes, int(engine.passes.records.lengths.max())
+    reach = horizon(sol.stages)
+    if reach is None or reach >= full:
+        return None
+    whole = _resegment(passes, Iterate(sol.theta, sol.X0, passes.segments(sol.starts), sol.w),
+                       passes.segment_starts(full))
+    blocks = passes.sensitivities(sol.theta, whole.X0, whole.seg, sol.w)
+    phi = _growth(blocks.end_S, sol.theta.size, _state_scale(engine.guess, sol.X0))
+    return horizon([{"length": full, "growth": phi}]) if phi > PHI_STOP else None
 
 
 def residual_fraction(engine: Engine, sol: Solution) -> float:

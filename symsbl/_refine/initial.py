@@ -15,11 +15,12 @@ import numpy as np
 from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
 from .problem import Parameterisation, Records
+from .rows import state_guess
 from .sensitivity import Passes
 from .smoothing import smooth_model, smoothing_widths
-from .solver import Iterate, initial_states, noise_precisions
+from .solver import PHI_STOP, Iterate, _growth, _state_scale, horizon, initial_states, noise_precisions
 
-__all__ = ["initial_state"]
+__all__ = ["initial_state", "fitted_start", "short_horizons"]
 
 
 #: The first stretch fitted (samples) and the factor by which it grows up to the stretch asked for. One long
@@ -49,23 +50,63 @@ def initial_state(model: IdentifiedModel, data: Trajectory, observed, guess: np.
         Samples used (longer is more precise for a damped system, but a chaotic one amplifies errors
         beyond the length an output-error fit stopped at).
     """
+    return fitted_start(model, data, observed, guess, interpolation=interpolation, substeps=substeps,
+                        length=length)[0]
+
+
+def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.ndarray, *, interpolation: str,
+                 substeps: int, length: int) -> tuple[np.ndarray, int | None]:
+    """:func:`initial_state`, and the samples within which the model amplifies a state error
+    :data:`~symsbl._refine.solver.PHI_STOP`-fold on ``data`` (from the growth over the fitted stretch; None
+    when it does not grow)."""
     n = max(8, min(int(length), data.n_samples))
     x0 = np.asarray(guess, dtype=float)
     span = min(n, FIRST_STRETCH)
     while True:
-        x0 = _fit(model, data.slice(0, span), observed, x0, interpolation, substeps, jit="auto" if span == n else False)
+        x0, phi = _fit(model, data.slice(0, span), observed, x0, interpolation, substeps,
+                       jit="auto" if span == n else False)
         if span == n:
-            return x0
+            break
         span = min(n, span * GROWTH)
+    reach = horizon([{"length": span, "growth": phi}])
+    if reach is None or reach >= data.n_samples:
+        return x0, None
+    # the stretch's growth, extrapolated, only suggests it: measured over the whole record, in one pass
+    passes, rows, w = _passes(smooth_model(model, smoothing_widths(model, [data])), data, observed, interpolation,
+                              substeps, jit=False)
+    with np.errstate(over="ignore", invalid="ignore"):
+        blocks = passes.sensitivities(np.zeros(0), x0[None, :], passes.segments(np.array([0])), w)
+        phi = _growth(blocks.end_S, 0, _state_scale(rows, x0[None, :]))
+    return x0, (horizon([{"length": data.n_samples, "growth": phi}]) if phi > PHI_STOP else None)
 
 
-def _fit(model, record, observed, guess, interpolation, substeps, jit) -> np.ndarray:
-    """The initial state fitted to the whole of ``record`` from ``guess`` (kept when the fit is not finite)."""
-    fitted = smooth_model(model, smoothing_widths(model, [record]))
+def short_horizons(model: IdentifiedModel, data: Trajectory, observed, *, interpolation: str, substeps: int,
+                   length: int) -> np.ndarray:
+    """``data`` re-simulated in stretches of ``length`` samples, each from the initial state that best explains
+    it: ``(n_samples, n_states)``. The validation of a model on a record it is hypersensitive on, where one
+    simulation of the whole record says nothing (a state error outgrows the response within the record)."""
+    fitted = smooth_model(model, smoothing_widths(model, [data]))
+    passes, guess, w = _passes(fitted, data, observed, interpolation, substeps, jit="auto")
+    starts = passes.segment_starts(max(int(length), 8))
+    seg = passes.segments(starts)
+    it, _ = initial_states(passes, Iterate(np.zeros(0), guess[starts].copy(), seg, w), sweeps=8, rtol=0.0)
+    return passes.simulate(np.zeros(0), it.X0, seg)[:data.n_samples]
+
+
+def _passes(fitted, record, observed, interpolation, substeps, jit):
+    """The passes of one record with the coefficients fixed, its state guess and its noise precisions."""
     param = Parameterisation.of(fitted, free=False)
     layout = Records.of(fitted, [record], tuple(observed), interpolation, int(substeps))
     passes = Passes(param, layout, jit=jit)
-    start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])),
-                    noise_precisions(layout.Y, np.isfinite(layout.Y)))
+    return passes, state_guess(fitted, [record], tuple(observed)), noise_precisions(layout.Y, np.isfinite(layout.Y))
+
+
+def _fit(model, record, observed, guess, interpolation, substeps, jit) -> tuple[np.ndarray, float]:
+    """The initial state fitted to the whole of ``record`` from ``guess`` (kept when the fit is not finite), and
+    the growth of a state error over the record."""
+    fitted = smooth_model(model, smoothing_widths(model, [record]))
+    passes, rows, w = _passes(fitted, record, observed, interpolation, substeps, jit)
+    start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])), w)
     it, _ = initial_states(passes, start, sweeps=8, rtol=0.0)
-    return it.X0[0] if np.all(np.isfinite(it.X0)) else guess
+    phi = _growth(it.blocks.end_S, 0, _state_scale(rows, it.X0))
+    return (it.X0[0] if np.all(np.isfinite(it.X0)) else guess), phi

@@ -38,7 +38,8 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
         terms = tuple(eq.terms[j] if n is None else
                       TermEstimate(expr=eq.terms[j].expr, coef=float(post.mean[n]), std=float(std[n]),
                                    alpha=float(sol.alpha[active[n]]),
-                                   evidence=float(-reduce_model(post, sol.alpha[active], [n])[0]),
+                                   evidence=float(sol.confirmed.get(active[n],
+                                                                    -reduce_model(post, sol.alpha[active], [n])[0])),
                                    alternatives=eq.terms[j].alternatives) for j, n in zip(kept, idx))
         equations.append(Equation(eq.lhs, terms, _block(post.covariance, idx), noise.get(eq.lhs, math.nan),
                                   post.log_evidence, n_samples, runners_up=eq.runners_up))

@@ -23,7 +23,7 @@ from .._data.trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
 from .sensitivity import Blocks, Passes, Segments
 
-__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "initial_states"]
+__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "initial_states", "horizon", "PHI_STOP"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -79,6 +79,9 @@ class Solution:
     stages: list = field(default_factory=list)
     n_pass: int = 0
     active: np.ndarray | None = None
+    #: The nats per term selection asked for; refits' evidence for terms the posterior put below it (by index).
+    penalty: float | None = None
+    confirmed: dict = field(default_factory=dict)
 
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -103,9 +106,11 @@ def damped_step(H, g, theta, alpha, lam):
     gt, gx = g[:, :npar].sum(0) - alpha * theta, g[:, npar:]
     nx = Hxx.shape[1]
     dxx = np.einsum("kii->ki", Hxx)
-    Hxx[:, np.arange(nx), np.arange(nx)] += lam * dxx + 1e-12 * np.maximum(dxx.max(1, keepdims=True), 1e-300)
+    scale = np.sqrt(np.where(dxx > 0, dxx, 1.0))  # each state in its own unit: solve the unit-diagonal system
+    Hxx /= scale[:, :, None] * scale[:, None, :]
+    Hxx[:, np.arange(nx), np.arange(nx)] += lam * (dxx > 0) + 1e-12
     rhs = np.concatenate([np.transpose(Htx, (0, 2, 1)), gx[:, :, None]], axis=2)
-    sol = np.linalg.solve(Hxx, rhs)
+    sol = np.linalg.solve(Hxx, rhs / scale[:, :, None]) / scale[:, :, None]
     S = Htt + np.diag(lam * np.diag(Htt)) - np.einsum("kpi,kiq->pq", Htx, sol[:, :, :npar])
     b = gt - np.einsum("kpi,ki->p", Htx, sol[:, :, npar])
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
@@ -244,6 +249,14 @@ def _longest(length: int, phi: float) -> int:
     if phi <= np.e:
         return np.iinfo(np.int64).max
     return int(length * np.log(PHI_STOP) / np.log(phi))
+
+
+def horizon(stages: list) -> int | None:
+    """Samples within which the fitted model amplifies a state error :data:`PHI_STOP`-fold, from the growth
+    measured over the last stage's segments (None when it does not grow: a contracting system)."""
+    measured = [st for st in stages if not np.isnan(st.get("growth", np.nan))]  # inf: a growth past doubles
+    longest = _longest(int(measured[-1]["length"]), float(measured[-1]["growth"])) if measured else None
+    return None if longest in (None, np.iinfo(np.int64).max) else max(int(longest), 1)
 
 
 def _growth(end_S, npar: int, scale: np.ndarray) -> float:

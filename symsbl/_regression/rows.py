@@ -32,7 +32,7 @@ from .gram import GramStats
 
 __all__ = [
     "RegressionStats", "regression_stats", "block_stats", "as_trajectories", "library_columns",
-    "check_variation", "check_inputs_vary",
+    "check_variation", "check_inputs_vary", "check_representable",
 ]
 
 
@@ -93,6 +93,30 @@ def check_variation(names: Sequence[str], low: np.ndarray, high: np.ndarray, wha
             fix = ("remove it from the states or record a response in which it moves" if what == "state"
                    else "remove it from the inputs (a dead sensor?); a free decay needs no input column")
             raise DataError(expected(f"{what} {name!r}", "a column that varies", f"a constant {lo:.6g}", fix, raw=True))
+
+
+#: Squared magnitudes a dictionary column may reach, so that its Gram entries stay normal doubles.
+SQUARE_RANGE = (1e-290, 1e290)
+
+
+def check_representable(trajectories, columns, library: Library, evaluator: Evaluator, probe: int = 1024) -> None:
+    """Refuse data in units that put a library column's squares outside :data:`SQUARE_RANGE`: they would
+    underflow (x**3 of 1e-60 silently dropped) or overflow in the Gram matrix. Probed on at most ``probe``
+    rows of each record."""
+    for traj, cols in zip(trajectories, columns):
+        Z = np.column_stack([traj.states, traj.inputs])[:, cols]
+        rows = Z[np.unique(np.linspace(0, len(Z) - 1, min(probe, len(Z))).astype(int))]
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            D = evaluator.evaluate(rows)
+            mean_square = np.mean(np.square(D), axis=0)
+            top = np.max(np.abs(D), axis=0)
+            rms = top * np.sqrt(np.mean(np.square(D / np.where(top > 0, top, 1.0)), axis=0))  # without under/overflow
+        bad = np.flatnonzero((top > 0) & ~((mean_square > SQUARE_RANGE[0]) & (mean_square < SQUARE_RANGE[1])))
+        if bad.size:
+            j = int(bad[0])
+            raise DataError(expected(f"term {library.names[j]!r}", "values whose squares a double holds (a root mean "
+                                     "square between 1e-145 and 1e145)", f"{rms[j]:.3g} on this record",
+                                     "express the states and inputs in other units, or lower the degree", raw=True))
 
 
 def check_inputs_vary(traj: Trajectory, library: Library) -> None:
@@ -198,6 +222,7 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     n_rows = sum(diff.n_rows(traj.n_samples) for traj in trajectories)
     enough_rows(n_rows, len(library), f"{len(trajectories)} record(s) with {type(diff).__name__}")
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
+    check_representable(trajectories, columns, library, evaluator)
     total = None
     with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
         for traj, cols in zip(trajectories, columns):

@@ -239,26 +239,30 @@ class RVM:
         if not var_t > 0:
             raise DataError(expected("y", "a target that is not identically zero", "all zeros",
                                      "there is nothing to fit", raw=True))
+        # the target in units of its standard deviation, as the columns in units of their norm: then no threshold
+        # of the solver (theta > 1e-12, the first prior) depends on the unit the data are in
+        unit = np.sqrt(var_t)
         sol = solve(
-            gram, dty / scale, tt, n, var_t,
-            beta_fixed=None if self.noise_var is None else 1.0 / options["noise_var"],
-            beta_max=np.inf if self.noise_floor == 0 else 1.0 / (self.noise_floor * var_t),
+            gram, dty / scale / unit, tt / unit**2, n, 1.0,
+            beta_fixed=None if self.noise_var is None else unit**2 / options["noise_var"],
+            beta_max=np.inf if self.noise_floor == 0 else 1.0 / self.noise_floor,
             free=options["free"], prune=options["prune"], max_iter=self.max_iter, tol=self.tol,
-            residual=residual, log=print if self.verbose else None,
+            residual=None if residual is None else (lambda active, mu: residual(active, mu * unit) / unit**2),
+            log=print if self.verbose else None,
         )
-        self._store(sol, scale, M, options["prune"])
+        self._store(sol, scale, unit, n, M, options["prune"])
         return self
 
-    def _store(self, sol, scale, M, prune):
+    def _store(self, sol, scale, unit, n, M, prune):
         u = sol.active
         self.active_ = u
         self.coef_ = np.zeros(M)
-        self.coef_[u] = sol.mu / scale[u]
-        self.sigma_ = sol.sigma / np.outer(scale[u], scale[u])
+        self.coef_[u] = sol.mu * unit / scale[u]
+        self.sigma_ = sol.sigma * unit**2 / np.outer(scale[u], scale[u])
         self.alpha_ = np.full(M, np.inf)
-        self.alpha_[u] = sol.alpha * scale[u] ** 2
-        self.noise_var_ = 1.0 / sol.beta
-        self.log_evidence_ = sol.log_evidence
+        self.alpha_[u] = sol.alpha * scale[u] ** 2 / unit**2
+        self.noise_var_ = unit**2 / sol.beta
+        self.log_evidence_ = sol.log_evidence - n * np.log(unit)  # the density of the target in its own unit
         self.evidence_contribution_ = sol.contribution
         self.snr_ = np.abs(sol.mu) / np.sqrt(np.diag(sol.sigma))
         self.prune_nats_ = prune

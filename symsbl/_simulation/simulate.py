@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 
 from .._base.checks import choice
-from .._base.errors import SimulationError, expected
+from .._base.errors import DivergenceError, SimulationError, expected
 from .._data.trajectory import Trajectory, validate
 from .cvodes import run_cvodes
 from .ode import OdeSystem
@@ -219,7 +219,7 @@ def simulate(
                else "fewer than 2 samples were computed, so there is nothing to return")
         if name == "cvodes" and not system.is_continuous:
             fix += "; the right-hand side is discontinuous: use method='rk4' (or 'auto')"
-        raise SimulationError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
-                                       f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True))
+        raise DivergenceError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
+                                       f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True), t_fail)
     return Trajectory(t[:n_good], states[:n_good], U[:n_good], system.state_names, system.input_names,
                       diverged_at=t_fail)

@@ -26,6 +26,7 @@ so no input can exhaust memory or the stack.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping
 from functools import reduce
@@ -130,6 +131,18 @@ class _Parser:
         finally:
             self.depth -= 1
 
+    def finite(self, value: ca.SX, divisor: ca.SX | None = None) -> ca.SX:
+        """``value``, unless it is a constant that is not finite (``1e999``, ``log(0)``, ``0**-1``) or divides by
+        a constant zero."""
+        if divisor is not None and divisor.is_constant() and float(divisor) == 0.0:
+            why = "divides by zero"
+        elif value.is_constant() and not math.isfinite(float(value)):
+            why = f"holds the constant {float(value)!r}"
+        else:
+            return value
+        raise ExpressionError(expected(self.where, "a term that is finite where its variables are",
+                                       f"{self.text!r}, which {why}", "correct or remove the term", raw=True))
+
     # -- grammar ------------------------------------------------------------------------------
     def parse(self) -> ca.SX:
         value = self.expr()
@@ -180,7 +193,7 @@ class _Parser:
             op = self.toks[self.i][1]
             self.i += 1
             rhs = self.unary()
-            value = value * rhs if op == "*" else value / rhs
+            value = self.finite(value * rhs) if op == "*" else self.finite(value / rhs, divisor=rhs)
         return value
 
     def unary(self):
@@ -194,14 +207,14 @@ class _Parser:
         base = self.atom()
         if self.take("**"):
             exponent = self.nested(self.unary)
-            return _pow(base, exponent)
+            return self.finite(_pow(base, exponent))
         return base
 
     def atom(self):
         kind, value, _ = self.toks[self.i]
         if kind == "number":
             self.i += 1
-            return ca.SX(float(value))
+            return self.finite(ca.SX(float(value)))
         if self.take("("):
             inner = self.expr()
             self.expect(")")
@@ -235,8 +248,10 @@ class _Parser:
                 f"{self.where}: expected {arity} argument(s) to {name} in {self.text!r}, received {len(args)}"
             )
         try:
-            return FUNCTIONS[name](*args)
+            return self.finite(FUNCTIONS[name](*args))
         except ExpressionError as err:
+            if str(err).startswith(self.where):
+                raise
             raise ExpressionError(f"{self.where}: {name} in {self.text!r}: {str(err)}") from None
 
     def piecewise(self):

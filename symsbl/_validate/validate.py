@@ -30,12 +30,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._base.checks import choice
-from .._base.errors import DataError, SimulationError, expected
+from .._base.errors import DataError, DivergenceError, SimulationError, expected
 from .._base.progress import Progress
 from .._data.trajectory import Trajectory, check_magnitude, noise_levels
 from .._derivatives.kinematics import estimate_velocity
 from .._model import IdentifiedModel
-from .._refine.initial import initial_state
+from .._refine.initial import fitted_start, short_horizons
 from .._refine.problem import INTERPOLATIONS
 from .._simulation.rk4 import run_rk4_batch
 from .._simulation.signals import Sampled
@@ -93,6 +93,12 @@ class Validation:
     band_draws : int
         Monte Carlo draws behind the band; draws whose simulation diverged are left out (and
         said so in ``message``), which narrows the band.
+    horizon : float or None
+        Seconds within which the model amplifies a state error 10^4-fold on this record, if shorter
+        than it (a hypersensitive, chaotic-like record: one simulation of all of it says nothing).
+    short_nrmse : dict[str, float] or None
+        With ``horizon``: per state, the NRMSE over stretches of a quarter of it (errors grow 10-fold),
+        each re-simulated from its own fitted initial state: the validation that works there.
     """
 
     measured: Trajectory
@@ -105,6 +111,8 @@ class Validation:
     message: str
     noise_std: dict | None = None
     band_draws: int = 0
+    horizon: float | None = None
+    short_nrmse: dict | None = None
 
     def __str__(self) -> str:
         return self.message
@@ -140,6 +148,11 @@ class Validation:
         return dict(zip([names[k] for k in observed], map(float, inside.mean(axis=0))))
 
 
+#: Most Monte Carlo draws a band takes (its 3-sigma edges then known to 0.7 %), and the memory its simulated
+#: responses may take (held at once with their deviations: 3 copies of 8 bytes a value).
+MAX_BAND_DRAWS, BAND_MEMORY = 10_000, 2 * 2**30
+
+
 def _input_signal(traj: Trajectory, model: IdentifiedModel, interpolation: str):
     missing = [n for n in model.input_names if n not in traj.input_names]
     if missing:
@@ -159,6 +172,11 @@ def _check(model, data, n_band) -> tuple[str, ...]:
         raise DataError(expected("data", "a Trajectory", type(data).__name__, raw=True))
     if isinstance(n_band, bool) or not isinstance(n_band, (int, np.integer)) or n_band < 0:
         raise DataError(expected("n_band", "a number of Monte Carlo draws >= 0 (0: no band)", n_band))
+    most = int(min(MAX_BAND_DRAWS, BAND_MEMORY // (24 * max(data.n_samples, 1) * len(model.state_names))))
+    if n_band > most:
+        raise DataError(expected("n_band", f"at most {most} Monte Carlo draws for {data.n_samples} samples of "
+                                 f"{len(model.state_names)} states ({BAND_MEMORY / 2**30:g} GiB held at once)", n_band,
+                                 "100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"))
     position_of = {v: x for x, v in model.kinematics}
     observed = tuple(n for n in model.state_names if n in data.state_names)
     missing = [n for n in model.state_names if n not in data.state_names and n not in model.latent_names
@@ -175,9 +193,9 @@ def _check(model, data, n_band) -> tuple[str, ...]:
 
 
 def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str,
-                   substeps: int) -> np.ndarray:
-    """The state the re-simulation starts from: the first sample (an unmeasured velocity from its
-    position), or with ``how="fit"`` the state that best explains the record's first stretch."""
+                   substeps: int) -> tuple[np.ndarray, int | None]:
+    """The start of the re-simulation: the first sample (an unmeasured velocity from its position) or, ``how="fit"``,
+    the state that best explains the first stretch; and the samples in which a state error grows 10^4-fold."""
     position_of = {v: x for x, v in model.kinematics}
     x0 = []
     for n in model.state_names:
@@ -189,11 +207,11 @@ def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str,
             x0.append(0.0)
     x0 = np.array(x0)
     if how == "first":
-        return x0
+        return x0, None
 
     length = _fitted(model, "segment_length", lambda v: isinstance(v, int) and v > 0, data.n_samples)
-    return initial_state(model, data, observed, x0, interpolation=interpolation, substeps=substeps,
-                         length=min(length, 8192))
+    return fitted_start(model, data, observed, x0, interpolation=interpolation, substeps=substeps,
+                        length=min(length, 8192))
 
 
 def _settings(model: IdentifiedModel, interpolation, substeps) -> tuple[str, int]:
@@ -287,9 +305,12 @@ def validate_model(
         # also shared by every Monte Carlo draw).
         method = "rk4"
     choice("initial_state", initial_state, ("fit", "first"), error=DataError)
-    x0 = _initial_state(model, data, observed, initial_state, interpolation, substeps)
+    x0, reach = _initial_state(model, data, observed, initial_state, interpolation, substeps)
     kw = dict(inputs=signal, x0=x0, method=method, substeps=substeps, on_divergence="truncate")
-    sim = simulate(system, data.t, **kw)
+    try:
+        sim = simulate(system, data.t, **kw)
+    except DivergenceError as err:  # within the first step: the first two samples stand for the response
+        sim = Trajectory(data.t[:2], np.vstack([x0, x0]), None, model.state_names, diverged_at=err.diverged_at)
     n = sim.n_samples
     diverged = getattr(sim, "diverged_at", None)
     if diverged is not None or n < data.n_samples:
@@ -308,6 +329,11 @@ def validate_model(
         levels = noise_levels(data)
         noise = {s: levels[s] for s in observed}
     result = Validation(data, sim, err, fit, None, band, "ok", "", noise, draws)
+    if reach is not None and reach < data.n_samples:  # hypersensitive here: judged over short horizons
+        pieces = short_horizons(model, data, observed, interpolation=interpolation, substeps=substeps,
+                                length=max(reach // 4, 16))[:, [model.state_names.index(n) for n in observed]]
+        result = dataclasses.replace(result, horizon=float(reach * data.dt),
+                                     short_nrmse=dict(zip(observed, map(float, nrmse(X, pieces)))))
     return dataclasses.replace(result, message=_message(result, n_band))
 
 
@@ -316,6 +342,11 @@ def _message(result, n_band: int) -> str:
     lines = [f"{k}: NRMSE {100 * v:.3g} %, fit {result.fit[k]:.2f} %"
              + (f", {100 * coverage[k]:.1f} % of samples inside the 3-sigma predictive band" if k in coverage else "")
              for k, v in result.nrmse.items()]
+    if result.horizon is not None:
+        lines.append(f"hypersensitive record (chaotic-like): the model amplifies a state error 10^4-fold within "
+                     f"{result.horizon:.3g} s, so one simulation of the whole record says nothing of it; over "
+                     f"stretches of {result.horizon / 4:.3g} s, each from its fitted initial state: "
+                     + ", ".join(f"{k}: NRMSE {100 * v:.3g} %" for k, v in result.short_nrmse.items()))
     if n_band and result.band_draws < n_band:
         lines.append(f"the band uses {result.band_draws} of {n_band} posterior draws; the others diverged in "
                      "simulation" + ("" if result.band is not None else ", too many to draw a band"))
