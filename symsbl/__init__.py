@@ -54,7 +54,7 @@ from ._derivatives.differences import CentralDifference, PointDifference, Savitz
 from ._derivatives.weakform import WeakForm
 
 # -- the identified model --------------------------------------------------------------------
-from ._model import Equation, FitMethod, IdentifiedModel, TermEstimate
+from ._model import Equation, FitMethod, IdentifiedModel, ModelPath, PathEntry, TermEstimate
 
 # -- sparse Bayesian regression (equation error) -----------------------------------------------
 from ._regression.gram import GramStats
@@ -133,7 +133,7 @@ __all__ = [
     # regression and identification
     "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify", "RefineOptions", "refine",
     # the model
-    "TermEstimate", "Equation", "IdentifiedModel", "FitMethod",
+    "TermEstimate", "Equation", "IdentifiedModel", "FitMethod", "ModelPath", "PathEntry",
     # validation
     "Validation", "validate_model", "nrmse", "TruthComparison", "compare_to_truth",
     # discrepancy

@@ -161,6 +161,8 @@ def _unmeasured_allowed(states, kinematics) -> tuple:
 
 def _cmd_identify(args) -> int:
     from ._base.checks import integer
+    from ._base.rule import SelectionRule
+    from ._refine.options import RefineOptions
     from ._derivatives.weakform import WeakForm
     from ._identify import identify
     from ._symbolic.symbols import symbols
@@ -176,22 +178,62 @@ def _cmd_identify(args) -> int:
             raise ParameterError(expected("--overlap", "1 unless --derivative is weak",
                                           f"--overlap {args.overlap} with --derivative {derivative}", raw=True))
         derivative = WeakForm(overlap=args.overlap)
+    options = RefineOptions(noise=args.noise, doubts=args.doubts,
+                            **({"interpolation": args.interpolation} if args.interpolation else {}))
     try:
         model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
-                         refine=not args.no_refine,
-                         refine_options={"interpolation": args.interpolation} if args.interpolation else None)
+                         refine=False if args.no_refine else options,
+                         selection=SelectionRule(model_choice=args.selection))
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("WeakForm.overlap:", "--overlap:", 1)) from None
-    how = "output error (refined)" if model.fit.value == "output-error" else "equation error"
+    estimator = model.metadata.get("estimator", {})
+    how = ("output error (refined)" if model.fit.value == "output-error" else
+           "equation error (output error is biased here)" if estimator.get("used") == "equation-error" else
+           "equation error")
     print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
           f"coefficients by {how}:")
     print(model)
+    for line in _diagnosis(model):
+        print(line)
+    if args.path:
+        print("model path:")
+        print(model.path)
     if "latent" in model.metadata:
         print(_latent_summary(model.metadata["latent"]))
     if args.json is not None:
         model.save(args.json)
         print(f"model written to {args.json}")
+    if args.plot:
+        from .plots import model_path_figure
+
+        model_path_figure(model).savefig(args.plot)
+        print(f"figure written to {args.plot}")
     return 0 if any(eq.terms for eq in model.equations) else 1
+
+
+def _diagnosis(model) -> list[str]:
+    """What the refinement says about the record: its noise model, the residual tests that failed, why the
+    equation-error estimate is reported."""
+    refine = model.metadata.get("refine", {})
+    lines = []
+    coloured = {k: v["model"] for k, v in refine.get("noise", {}).items() if v["model"] != "white"}
+    if coloured:
+        lines.append("noise model: " + ", ".join(f"{k} {m}" for k, m in coloured.items()))
+    for t in refine.get("residual", []):
+        if not (t["white"] and t["independent"] and t["open_loop"]):
+            lines.append(f"residual test of {t['channel']}: " + ("" if t["white"] else
+                         f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g}) ")
+                         + " ".join(f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1)
+                         + " ".join(f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1))
+    for reason in model.metadata.get("estimator", {}).get("doubts", []):
+        lines.append(f"output error doubted: {reason}")
+    if refine.get("short_segments"):
+        lines.append(f"fitted on segments of at most {refine['short_segments']} samples, each from its own initial "
+                     "state (the residual is not the measurement noise the likelihood describes)")
+    chosen = model.path.chosen if len(model.path) else None
+    if chosen is not None and chosen.source != "evidence":
+        lines.append(f"structure chosen from the model path ({chosen.source}): {model.path.rule}")
+    return lines
 
 
 def _latent_summary(info: dict) -> str:
@@ -313,8 +355,28 @@ def _add_identify(sub, common) -> None:
     p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
                    help="how the inputs run between samples while refining (default: cubic, periodic when a state "
                         "is latent; hold: a digital controller's stepped output)")
+    p.add_argument("--noise", default="auto", type=_noise_option, metavar="{auto,white,0..8}",
+                   help="output-error noise model: auto (default: an autoregressive filter per measured channel, its "
+                        "order by BIC, white when the residual is), white, or an order")
+    p.add_argument("--selection", default="validated", choices=["validated", "evidence"],
+                   help="how the structure is chosen from the model path: validated (default: from the simplest, a "
+                        "richer structure only where it lowers the cross-validated free-run error by more than one "
+                        "standard error and by a tenth of its gap to the noise floor) or evidence")
+    p.add_argument("--doubts", default="adapt", choices=["adapt", "report"],
+                   help="when the residual tests doubt output error's likelihood: adapt (default: refit on short "
+                        "segments; in a closed loop report the equation-error model) or report (warn only)")
+    p.add_argument("--path", action="store_true",
+                   help="print the model path: each candidate structure with its evidence and cross-validated error")
     p.add_argument("--json", help="write the identified model as JSON to this file")
+    p.add_argument("--plot", metavar="FILE", help="write the model path (cross-validated error against the number "
+                   "of terms) and the residual tests to FILE, e.g. path.png (needs matplotlib)")
     p.set_defaults(func=_cmd_identify)
+
+
+def _noise_option(text: str):
+    """``--noise``: auto, white or an autoregressive order (the order as a number; :class:`RefineOptions` checks
+    the value)."""
+    return int(text) if text.strip().isdigit() else text
 
 
 def _add_validate(sub, common) -> None:

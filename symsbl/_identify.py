@@ -18,14 +18,17 @@ import dataclasses
 
 import numpy as np
 
+
 from ._base.errors import ParameterError, expected
 from ._base.rule import SelectionRule
 from ._derivatives.kinematics import complete_states, latent_states, parse_kinematics
 from ._latent import identify_latent
-from ._model import IdentifiedModel
+from ._data.trajectory import Trajectory, noise_levels
+from ._model import FitMethod, IdentifiedModel
 from ._refine import refine_or_keep
 from ._refine.options import RefineOptions, as_options
 from ._regression.fit import fit_stats, selection_rule
+from ._regression.path import validated_equations
 from ._regression.rows import as_trajectories, regression_stats
 from ._regression.rvm import RVM
 from ._symbolic.library import Library
@@ -135,7 +138,58 @@ def identify(
                                     metadata=dict(model.metadata, unmeasured_estimate="smoothing derivative"))
     if options is None:
         return model
-    return refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
+    refined = refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
+    return _reported(model, refined, completed, problem, rvm, rule, estimated=bool(unmeasured))
+
+
+def _reported(start: IdentifiedModel, refined: IdentifiedModel, records, problem, rvm, rule: SelectionRule,
+              estimated: bool) -> IdentifiedModel:
+    """The output error's model, or, where its likelihood does not hold (:func:`symsbl._refine.diagnostics.doubts`:
+    process or input noise, a closed loop), the equation error's with each equation's structure validated by
+    cross-validation (:mod:`symsbl._regression.path`); ``metadata["estimator"]`` says which and why."""
+    info = refined.metadata.get("refine", {}) if refined.fit is FitMethod.OUTPUT_ERROR else {}
+    doubts = info.get("doubts", [])
+    used = {"used": refined.fit.value, "doubts": doubts}
+    doubted = bool(doubts) and info.get("adapted", True)
+    if not doubted or estimated:  # a velocity estimated by a smoothing derivative would bias the equation error
+        return dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
+    template = RVM(**dict((rvm or RVM()).get_params(), prune_nats=rule.penalty))
+    folds = [regression_stats(piece, problem.library, derivative=problem.derivative).stats
+             for piece in _folds(records)]
+    again = regression_stats([_noisier(r) for r in records], problem.library, derivative=problem.derivative)
+    model, path = validated_equations(start, problem, folds, template, rule, again.stats)
+    alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
+    meta = dict(start.metadata, refine=refined.metadata.get("refine", {}),
+                estimator=dict(used, used="equation-error", output_error=alternative))
+    return dataclasses.replace(model, metadata=meta, path=path)
+
+
+def _noisier(record: Trajectory) -> Trajectory:
+    """``record`` with its own noise added again (each column's white-noise level from its third differences):
+    what this adds to an equation's residual is what the noise puts there, the floor of its error."""
+    levels = noise_levels(record)
+    rng = np.random.default_rng(0)
+
+    def noisy(values, names):
+        return values + np.array([levels[n] for n in names]) * rng.standard_normal(values.shape)
+
+    return Trajectory(record.t, noisy(record.states, record.state_names), noisy(record.inputs, record.input_names),
+                      record.state_names, record.input_names)
+
+
+#: Contiguous folds of each record for the equation error's cross-validation.
+FOLDS = 5
+
+
+def _folds(records) -> list:
+    """The records cut into :data:`FOLDS` contiguous stretches each (a record of fewer than 5 folds of 64 samples
+    stays whole)."""
+    out = []
+    for r in records:
+        k = FOLDS if r.n_samples >= FOLDS * 64 else 1
+        cuts = (np.arange(k + 1) * r.n_samples) // k
+        out += [r.slice(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
+    return out
 
 
 def _refine_options(refine, refine_options) -> RefineOptions | None:

@@ -31,7 +31,7 @@ from ._figures import BAND, MEASURED, MODEL, POSTERIOR, PRIOR, forcing_window, n
 from ._model import Equation, IdentifiedModel
 from ._validate.validate import Validation
 
-__all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "term_label", "forcing_window"]
+__all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "model_path_figure", "term_label", "forcing_window"]
 
 def _equation_for(model: IdentifiedModel, state: str | None) -> Equation:
     if not model.equations:
@@ -268,4 +268,86 @@ def coefficient_uncertainty(model: IdentifiedModel):
                         ha="center", va="bottom", fontsize="small")
     axes[-1].set_xlabel(r"coefficient / posterior mean, with $\pm 3\sigma$ interval")
     fig.suptitle("Posterior of the kept coefficients")
+    return fig
+
+
+def model_path_figure(model: IdentifiedModel):
+    """The model path of an identification: cross-validated free-run error and penalised evidence against the
+    number of terms (the Pareto front of error against size), the chosen structure marked; and the residual
+    tests of the reported model (Ljung-Box p-value of each channel's innovations, and the largest
+    cross-correlation with each input against its threshold).
+
+    Parameters
+    ----------
+    model : IdentifiedModel
+        From :func:`symsbl.identify` with output-error refinement (``model.path`` not empty).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+
+    Examples
+    --------
+    >>> import symsbl, symsbl.plots
+    >>> x1, x2, F = symsbl.symbols("x1 x2 F")
+    >>> train = symsbl.simulate(symsbl.systems.duffing(), symsbl.time_grid(1.0, 4096),
+    ...                         inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)).with_noise(0.01, seed=0)
+    >>> model = symsbl.identify(train, symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F]))
+    >>> fig = symsbl.plots.model_path_figure(model)
+    >>> len(fig.axes)
+    3
+    """
+    if not isinstance(model, IdentifiedModel) or not len(model.path):
+        raise DataError(expected("model", "an identified model with a model path (identify with output-error "
+                                 "refinement)", "none" if isinstance(model, IdentifiedModel) else type(model).__name__,
+                                 raw=True))
+    fig = new_figure(figsize=(11.0, 3.8), layout="constrained")
+    from matplotlib.ticker import MaxNLocator  # matplotlib is there: new_figure checked it
+
+    ax_cv, ax_ev, ax_res = fig.subplots(1, 3)
+    for ax in (ax_cv, ax_ev):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    entries = list(model.path)
+    sizes = np.array([e.n_terms for e in entries])
+    cv = np.array([100 * e.cv_error for e in entries])
+    se = np.array([100 * e.cv_se if np.isfinite(e.cv_se) else 0.0 for e in entries])
+    finite = np.isfinite(cv)
+    ax_cv.errorbar(sizes[finite], cv[finite], yerr=se[finite], fmt="o", color=MEASURED, ms=4, capsize=2)
+    chosen = [k for k, e in enumerate(entries) if e.chosen]
+    for k in chosen:
+        if finite[k]:
+            ax_cv.plot(sizes[k], cv[k], "o", ms=10, mfc="none", mec=MODEL, mew=2, label="chosen")
+    ax_cv.set_yscale("log")
+    ax_cv.set_xlabel("free terms")
+    ax_cv.set_ylabel("cross-validated free-run error (%)")
+    ax_cv.set_title("model path")
+    if chosen:
+        ax_cv.legend(frameon=False, fontsize=8, loc="upper center")
+    objective = np.array([e.objective for e in entries])
+    ax_ev.plot(sizes, objective - np.max(objective), "s", color=PRIOR, ms=4)
+    for k in chosen:
+        ax_ev.plot(sizes[k], objective[k] - np.max(objective), "s", ms=10, mfc="none", mec=MODEL, mew=2)
+    ax_ev.set_xlabel("free terms")
+    ax_ev.set_ylabel("penalised log evidence - best (nats)")
+    ax_ev.set_yscale("symlog")
+    ax_ev.set_title("evidence")
+    tests = model.metadata.get("refine", {}).get("residual", [])
+    labels, values = [], []
+    for t in tests:
+        labels.append(f"{t['channel']}: whiteness")
+        values.append(min(1.0 / max(t["whiteness_p"], 1e-300) * 0.01, 1e3))  # 1 at p = 0.01
+        for name, r in t["input_ratio"].items():
+            labels.append(f"{t['channel']} vs {name}")
+            values.append(r)
+        for name, r in t["feedback_ratio"].items():
+            labels.append(f"{name}<-{t['channel']} (feedback)")
+            values.append(r)
+    if values:
+        y = np.arange(len(values))
+        ax_res.barh(y, values, color=[MODEL if v > 1 else POSTERIOR for v in values])
+        ax_res.axvline(1.0, color=MEASURED, lw=1, ls="--")
+        ax_res.set_yticks(y, labels, fontsize=7)
+        ax_res.set_xscale("log")
+        ax_res.set_xlabel("statistic / its 99 % threshold")
+    ax_res.set_title("residual tests")
     return fig

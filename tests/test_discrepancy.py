@@ -133,7 +133,9 @@ def test_a_gap_between_grid_points_is_refined_to_its_value_and_nothing_makes_up_
     system = OdeSystem((x, v), (F,), rhs, (), (), "gap")
     out = [simulate(system, time_grid(dur, 1000.0), inputs=symsbl.Multisine(rms=rms, f_min=2.0, f_max=40.0, seed=s),
                     method="rk4").with_noise(0.01, seed=s + 1) for dur, rms, s in ((6.0, 80.0, 3), (3.0, 40.0, 9))]
-    report = discrepancy(out[0], "x1: x2; x2: F, x1, x2", heldout=out[1], rule=symsbl.DecisionRule(n_bootstrap=0))
+    # the output-error evidence named: by default, the base model's error here reads as feedback (a limitation)
+    report = discrepancy(out[0], "x1: x2; x2: F, x1, x2", heldout=out[1], rule=symsbl.DecisionRule(n_bootstrap=0),
+                         evidence="output-error")
     assert [a.effect for a in report.added] == ["clearance"], report.verdict
     assert report.added[0].shape == pytest.approx(0.004, rel=0.01)
     assert report.added[0].coef == pytest.approx(-9e3 / 2.5, rel=0.02)
@@ -547,7 +549,7 @@ def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
     recs = [simulate(system, time_grid(duration, 1000.0), method="rk4", substeps=16,
                      inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed)).with_noise(0.01, seed=seed)
             for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))]
-    report = discrepancy(recs[0], "x: v; v: F, x, v", heldout=recs[1])
+    report = discrepancy(recs[0], "x: v; v: F, x, v", heldout=recs[1], evidence="output-error")
     assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict
     assert "removed" in [s.decision.value for s in report.steps], report.verdict
     truth = {"F": 1 / m, "x": -k / m, "v": -c / m, "x**3": -k3 / m, "sign(v)": -fc / m}

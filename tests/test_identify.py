@@ -168,20 +168,21 @@ def test_emps_slice_identifies_the_published_inverse_model_within_its_posterior(
         assert term.coef == pytest.approx(expected[term.name], rel=0.03), term.name
 
 
-def test_emps_slice_by_displacement_only_warns_that_the_output_error_residual_is_correlated():
+def test_emps_slice_by_displacement_only_warns_that_output_error_does_not_hold():
     """The same closed-loop record identified the way a new user would, displacement only with the Eq. 21
     library and the default refinement: a free-run simulation of the force cannot follow a closed loop,
-    and refinement says so (its residual's effective sample fraction is far below 1) instead of passing
-    over-confident coefficients as a result."""
+    and refinement says so (the residual test rejects its likelihood) instead of passing over-confident
+    coefficients and terms selected on a wrong evidence as a result; with the velocity only estimated, there
+    is no equation-error model to report instead, and the doubts stay in the model's metadata."""
     from pathlib import Path
 
     d = np.load(Path(__file__).parent / "data" / "emps_slice.npz")
     record = Trajectory(d["t"], d["qm"][:, None], d["tau"].astype(float)[:, None], ("q",), ("tau",))
     q, v, tau = symbols("q v tau")
-    with pytest.warns(RefineWarning, match="residual is strongly correlated"):
+    with pytest.warns(RefineWarning, match="where output error is biased"):
         model = identify(record, paper([q, v], [tau], degree=2), states=["q", "v"], kinematics={"q": "v"})
     assert model.fit is FitMethod.OUTPUT_ERROR
-    assert model.metadata["refine"]["effective_fraction"] < 0.1
+    assert model.metadata["estimator"]["doubts"] == model.metadata["refine"]["doubts"] != []
 
 
 def test_the_support_search_stops_at_its_budget_with_the_best_support_found(monkeypatch):

@@ -295,8 +295,9 @@ def test_code_planted_in_any_string_field_of_a_model_file_never_runs(files, tmp_
         code, _, err = run(["validate", str(model_file), str(files / "train.csv")], capsys)
         assert not canary.exists(), path
         assert err.count("\n") <= 1, err
-        # fields symsbl only displays (alternatives, metadata) may hold any text; the others are refused
-        if path[0] not in ("metadata",) and "alternatives" not in path:
+        # fields symsbl only displays (alternatives, metadata, the model path) may hold any text; the others are
+        # refused
+        if path[0] not in ("metadata", "path") and "alternatives" not in path:
             assert code == 2 and err.startswith("symsbl validate: error: model JSON"), (path, err)
 
 

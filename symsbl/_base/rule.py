@@ -22,12 +22,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import sympy as sp
 
-from .checks import number
+from .checks import choice, number
 from .errors import ParameterError, expected
 
-__all__ = ["SelectionRule", "PENALTIES", "complexity", "nats_per_term", "multiplicity"]
+__all__ = ["SelectionRule", "PENALTIES", "MODEL_CHOICES", "complexity", "nats_per_term", "multiplicity", "paired_se"]
 
 
 def _ebic(n_obs: float, n_candidates: float) -> float:
@@ -57,6 +58,20 @@ def nats_per_term(penalty, n_obs: float, n_candidates: float) -> float:
 def multiplicity(n_choices: int) -> float:
     """Nats a choice among ``n_choices`` equally likely alternatives costs, ``log n`` (0 for one)."""
     return math.log(n_choices) if n_choices > 1 else 0.0
+
+
+#: How a structure is chosen from the model path (see :attr:`SelectionRule.model_choice`).
+MODEL_CHOICES = ("validated", "evidence")
+
+
+def paired_se(a: np.ndarray, b: np.ndarray) -> float:
+    """Standard error of the mean of the fold-by-fold differences ``a - b`` (0 when ``a`` is ``b``)."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    if not np.all(np.isfinite(d)):
+        return math.inf
+    if not np.any(d):
+        return 0.0
+    return float(np.std(d, ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.inf
 
 
 def complexity(expr: sp.Expr) -> tuple[int, int, int]:
@@ -108,6 +123,18 @@ class SelectionRule:
     margin_nats : float
         Log Bayes factor by which a named choice must beat its runner-up (3 nats: odds of 20 to 1); below it,
         the choice is reported as ambiguous.
+    model_choice : {"validated", "evidence"}
+        How the identified structure is chosen from the model path (the structures between the equation
+        error's and the output error's, each with its evidence and cross-validated error): ``"validated"``
+        (default) from the simplest, a richer structure is taken only when it lowers the cross-validated error
+        by more than one standard error of the fold-by-fold difference (every fold agrees) and by more than
+        ``min_gain`` of the distance to the noise floor (it matters); ``"evidence"`` the evidence's own choice.
+    min_gain : float
+        The share of the gap between a structure's cross-validated error and the noise floor that a richer
+        structure must close to be taken (0.1: a term that brings a model a tenth closer to what the noise
+        allows). Measured on EMPS (a real axis with friction): a cubic velocity term lowers the held-out force
+        error by 1.9 %, every fold agreeing, and moves the viscous coefficient by 14 %; the physics' four terms
+        are kept.
 
     Examples
     --------
@@ -124,6 +151,8 @@ class SelectionRule:
     penalty: str | float = "ebic"
     equivalence_nats: float = 2.0
     margin_nats: float = 3.0
+    model_choice: str = "validated"
+    min_gain: float = 0.1
 
     def check(self) -> SelectionRule:
         """``self``, after checking every field (called where a rule enters a computation)."""
@@ -135,6 +164,8 @@ class SelectionRule:
             number("selection.penalty", self.penalty, low=0.0)
         number("selection.equivalence_nats", self.equivalence_nats, low=0.0)
         number("selection.margin_nats", self.margin_nats, low=0.0)
+        choice("selection.model_choice", self.model_choice, MODEL_CHOICES)
+        number("selection.min_gain", self.min_gain, low=0.0, high=1.0)
         return self
 
     def nats_per_term(self, n_obs: float, n_candidates: float) -> float:
@@ -152,6 +183,37 @@ class SelectionRule:
     def decisive(self, log_bayes_factor: float) -> bool:
         """Whether a choice beats its runner-up by at least :attr:`margin_nats`."""
         return float(log_bayes_factor) >= self.margin_nats
+
+    def choose(self, sizes, objectives, fold_errors, floor: float = 0.0) -> tuple[int, str]:
+        """The chosen candidate of a model path and the reason, in one line.
+
+        Parameters
+        ----------
+        sizes : sequence of int
+            Free terms of each candidate.
+        objectives : sequence of float
+            Penalised log evidence of each.
+        fold_errors : ndarray, shape (n_candidates, n_folds)
+            Cross-validated error of each candidate on each fold (``inf``: diverged).
+        floor : float
+            The error the noise alone leaves (0 when unknown).
+        """
+        sizes, objectives = np.asarray(sizes), np.asarray(objectives, dtype=float)
+        by_evidence = int(np.argmax(np.where(np.isfinite(objectives), objectives, -np.inf)))
+        E = np.asarray(fold_errors, dtype=float)
+        finite = np.all(np.isfinite(E), axis=1) if E.size else np.zeros(0, bool)
+        if self.model_choice == "evidence" or not np.any(finite):
+            return by_evidence, "the best penalised evidence"
+        mean = np.where(finite, E.mean(axis=1) if E.size else 0.0, np.inf)
+        order = sorted(np.flatnonzero(finite), key=lambda k: (sizes[k], -objectives[k]))
+        current = order[0]
+        for k in order[1:]:
+            gain = mean[current] - mean[k]
+            if gain > paired_se(E[k], E[current]) and gain > self.min_gain * max(mean[current] - floor, 0.0):
+                current = k
+        return int(current), (f"from the simplest, a richer structure only when it lowers the cross-validated "
+                              f"error beyond one standard error and by {100 * self.min_gain:g} % of the gap to the "
+                              "noise floor")
 
     @staticmethod
     def complexity(expr: sp.Expr) -> tuple[int, int, int]:

@@ -196,6 +196,9 @@ class DiscrepancyReport:
         Estimated noise level per channel.
     evidence : str
         ``"output-error"`` or ``"equation-error"``.
+    notes : tuple of str
+        What the workflow decided about the record before the search (a closed loop that sent it to the
+        equation-error evidence).
     """
 
     initial: IdentifiedModel
@@ -205,6 +208,7 @@ class DiscrepancyReport:
     error_measure: str
     noise: dict = field(default_factory=dict)
     evidence: str = "equation-error"
+    notes: tuple = ()
 
     @property
     def added(self) -> list[EffectScore]:
@@ -239,10 +243,11 @@ class DiscrepancyReport:
             for s in self.steps
         ]
         return {"added": added, "verdict": self.verdict, "final": self.final.to_json(),
-                "error_measure": self.error_measure, "evidence": self.evidence, "steps": steps}
+                "error_measure": self.error_measure, "evidence": self.evidence, "notes": list(self.notes),
+                "steps": steps}
 
     def __str__(self) -> str:
-        lines = ["model before:", _indent(str(self.initial))]
+        lines = [f"note: {n}" for n in self.notes] + ["model before:", _indent(str(self.initial))]
         for s in self.steps:
             lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
                          f"training, {100 * s.error_heldout:.3g} % held out")

@@ -134,7 +134,8 @@ class Scorer:
         starts = passes.segment_starts(min(int(sol.length), int(passes.records.lengths.max())))
         origin = np.concatenate([main.passes.records.starts[k] + np.arange(a, b) for k, a, b in plan])
         with np.errstate(all="ignore"):
-            blocks = passes.sensitivities(theta, self.simulated[origin[starts]], passes.segments(starts), sol.w)
+            blocks = passes.sensitivities(theta, self.simulated[origin[starts]], passes.segments(starts), sol.w,
+                                          sol.ar)
         H, g = blocks.H, blocks.g
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
             return np.zeros(len(candidates))

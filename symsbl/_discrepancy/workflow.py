@@ -43,6 +43,7 @@ from .._data.trajectory import Trajectory, noise_levels
 from .._derivatives.kinematics import complete_states, parse_kinematics, with_velocities
 from .._derivatives.registry import get_differentiator
 from .._model import Equation
+from .._refine.diagnostics import residual_tests
 from .._refine.engine import Settings
 from .._symbolic.symbols import casadi_to_sympy
 from .candidates import catalogue_candidates, library_candidates, pairs_of
@@ -191,6 +192,7 @@ def discrepancy(
     """
     check_record(data, "data", None)
     names = (tuple(data.state_names), tuple(data.input_names))
+    chosen_by_default = evidence is None
     error, evidence, search_library, max_iterations, seed = _options(error, evidence, search_library,
                                                                      max_iterations, seed, rule)
     if heldout is None:
@@ -211,12 +213,20 @@ def discrepancy(
     pairs = parse_kinematics(kinematics, data.state_names)
     if displacement is not None and velocity is not None and not pairs:
         pairs = ((displacement, velocity),)
-    run = Workflow(data, heldout, base, effects, displacement or (pairs[0][0] if pairs else None),
-                   velocity or (pairs[0][1] if pairs else None), derivative, error, measured)
+    x, v = displacement or (pairs[0][0] if pairs else None), velocity or (pairs[0][1] if pairs else None)
+    run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured)
     start = run.design.model(run.structure, data)
+    notes = []
     if evidence == "output-error":
         run.use_output_error(start, pairs, search_library)
         start = run.structure_model
+        loop = _feedback(run, start) if chosen_by_default and states == measured else ""
+        if loop:  # a closed loop biases output error; the inverse model's equation error is consistent
+            notes.append(f"{loop}: the record looks closed-loop, where output error is biased; the equation-error "
+                         "(inverse-model) evidence and the equation error are used instead")
+            evidence, error = "equation-error", "equation"
+            run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured)
+            start = run.design.model(run.structure, data)
     steps, names_added, note, model = [], [], _ending(None), start
     for it in range(1, max_iterations + 1):
         step = (oe_step(run, it, model, rule, seed=seed + it, history=tuple(steps)) if evidence == "output-error"
@@ -239,7 +249,17 @@ def discrepancy(
     final = model if evidence == "equation-error" or steps[-1].model_after is not None else steps[-1].model
     if evidence == "output-error":
         steps = as_in_final(run, steps, final)
-    return DiscrepancyReport(initial, final, tuple(steps), verdict, error, run.noise, evidence)
+    return DiscrepancyReport(initial, final, tuple(steps), verdict, error, run.noise, evidence, tuple(notes))
+
+
+def _feedback(run, model) -> str:
+    """The inputs that depend on past residuals of ``model``'s output-error fit on the records (a closed loop),
+    as a phrase; empty when none does."""
+    scorer = run.scorer(model, run.records)
+    loops = sorted({f"{name} depends on past residuals of {t.channel}" for t in residual_tests(scorer.engine,
+                                                                                                  scorer.solution)
+                    for name, r in t.feedback_ratio.items() if r > 1})
+    return "; ".join(loops)
 
 
 def _added_name(step) -> str:

@@ -33,8 +33,9 @@ import warnings
 import numpy as np
 
 from .._base.errors import DataError, SimulationError, expected
+from .._base.rule import SelectionRule
 from .._model import IdentifiedModel
-from .._refine import refine
+from .._refine import RefineOptions, refine
 from .._symbolic.library import Library, Term
 from .branches import Branches, Screened
 from .law import WeakForm, evaluate, homogeneous_terms, screen
@@ -115,7 +116,9 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
     starts = builder.starts(stages)
     substeps = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
-    options = {"interpolation": "periodic" if periodic else "cubic", "substeps": substeps, **(refine_options or {})}
+    # the branches' evidences compare on one likelihood: doubts are reported, not adapted to
+    options = {"interpolation": "periodic" if periodic else "cubic", "substeps": substeps, "doubts": "report",
+               **(refine_options or {})}
     data = record.slice(periods.start)
     fits, caught = {}, {}
 
@@ -125,7 +128,8 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
             try:
-                fits[name] = refine(start, data, library=candidates.get(name), **options)
+                fits[name] = refine(start, data, library=candidates.get(name), options=RefineOptions(**options),
+                                    selection=BRANCH_RULE)
             except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
                 failed[name] = str(error)
         clock(f"{name} branch")
@@ -150,6 +154,10 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
         "seconds": clock.times,
     }
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+#: The branches compare by their evidences: each keeps the structure its own evidence selects.
+BRANCH_RULE = SelectionRule(model_choice="evidence")
 
 
 def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, clock) -> Screened:

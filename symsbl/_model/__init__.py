@@ -2,5 +2,6 @@
 
 from .estimates import Equation, FitMethod, TermEstimate
 from .model import IdentifiedModel
+from .path import ModelPath, PathEntry
 
-__all__ = ["Equation", "FitMethod", "IdentifiedModel", "TermEstimate"]
+__all__ = ["Equation", "FitMethod", "IdentifiedModel", "ModelPath", "PathEntry", "TermEstimate"]

@@ -24,6 +24,7 @@ from .._base.errors import ParameterError, expected
 from .._derivatives.kinematics import latent_states
 from .._simulation.ode import OdeSystem
 from .estimates import Equation, FitMethod
+from .path import ModelPath
 from .modelfile import load_model, model_from_json, model_to_json, save_model
 
 __all__ = ["IdentifiedModel"]
@@ -51,6 +52,9 @@ class IdentifiedModel:
     joint_covariance : ndarray or None
         Posterior covariance of all coefficients in :meth:`parameters` order when the equations
         were estimated together (output error couples them); None for independent equations.
+    path : ModelPath
+        The candidate structures the model was chosen from, simplest first, with their evidence and
+        cross-validated free-run error (empty when no choice was made).
 
     Examples
     --------
@@ -85,6 +89,7 @@ class IdentifiedModel:
     kinematics: tuple = ()
     measured: tuple | None = None
     joint_covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
+    path: ModelPath = field(default_factory=ModelPath, compare=False, repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "fit", FitMethod(self.fit))

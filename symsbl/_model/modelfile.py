@@ -38,6 +38,7 @@ from .._base.outputs import safe_output, write_atomic
 from .._symbolic.parse import parse_expression
 from .._symbolic.symbols import symbols as make_symbols
 from .estimates import Equation, TermEstimate
+from .path import PATH_SOURCES, ModelPath
 
 __all__ = ["JSON_VERSION", "READABLE_VERSIONS", "MAX_MODEL_TERMS", "MAX_MODEL_NODES", "model_to_json",
            "model_from_json", "save_model", "load_model"]
@@ -101,6 +102,8 @@ def model_to_json(model) -> dict[str, Any]:
     }
     if model.joint_covariance is not None:
         doc["covariance"] = np.asarray(model.joint_covariance).tolist()
+    if len(model.path):
+        doc["path"] = model.path.to_json()
     return doc
 
 
@@ -300,6 +303,29 @@ def _bounded(count: int, most: int, what: str) -> None:
                                  "identification kept; check where this one came from", raw=True))
 
 
+def _path(doc) -> ModelPath:
+    """The model path of a file (optional), every field checked as data."""
+    raw = doc.get("path")
+    if raw is None:
+        return ModelPath()
+    where = f"{_WHERE}.path"
+    ok = isinstance(raw, dict) and isinstance(raw.get("entries", []), list) and isinstance(raw.get("rule", ""), str)
+    if ok:
+        for e in raw.get("entries", []):
+            ok = ok and isinstance(e, dict) and isinstance(e.get("terms"), dict) and all(
+                isinstance(k, str) and isinstance(v, list) and all(isinstance(n, str) for n in v)
+                for k, v in e["terms"].items())
+            ok = ok and isinstance(e.get("n_terms"), int) and not isinstance(e.get("n_terms"), bool)
+            ok = ok and all(k in e and (e[k] is None or (isinstance(e[k], (int, float)) and not isinstance(e[k], bool)))
+                            for k in ("log_evidence", "objective", "cv_error", "cv_se"))
+            ok = ok and e.get("source") in PATH_SOURCES and isinstance(e.get("chosen"), bool)
+    if not ok:
+        raise DataError(expected(where, "an object {rule, entries: [{terms, n_terms, log_evidence, objective, "
+                                 "cv_error, cv_se, source, chosen}]} as symsbl writes it", "another layout",
+                                 "delete 'path' (it is optional)", raw=True))
+    return ModelPath.from_json(raw)
+
+
 def model_from_json(cls, doc):
     """Rebuild ``cls`` (IdentifiedModel) from a JSON document (dict or string), read as data."""
     if isinstance(doc, str):
@@ -327,7 +353,7 @@ def model_from_json(cls, doc):
     n_coefs = sum(len(eq.terms) for eq in equations)
     return cls(states=syms[:len(states)], inputs=syms[len(states):], equations=tuple(equations), metadata=metadata,
                fit=doc.get("fit", "equation-error"), kinematics=_kinematics(doc, states),
-               measured=_measured(doc, states), joint_covariance=_joint_covariance(doc, n_coefs))
+               measured=_measured(doc, states), joint_covariance=_joint_covariance(doc, n_coefs), path=_path(doc))
 
 
 def load_model(cls, path):

@@ -33,9 +33,12 @@ from .._base.rule import SelectionRule
 from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
 from .._symbolic.library import Library
+from .._data.residuals import LEVEL as RESIDUAL_LEVEL
 from .candidates import Rebased, extend, prior
 from .candidates import candidates as propose
+from .diagnostics import as_record, doubts, residual_tests
 from .engine import Engine, Settings, record_horizon, residual_fraction
+from .path import choose_structure
 from .options import MAX_SAMPLES, RefineOptions, as_options
 from .problem import check_records, window_plan
 from .result import to_model
@@ -141,7 +144,8 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         raise ParameterError(expected("model", "at least one equation with terms to fit", "none", raw=True))
     clock = stopwatch()
     used, note = _windows(records, opts.max_samples)
-    settings = Settings(interpolation=opts.interpolation, substeps=opts.substeps, smooth=opts.smooth, jit=opts.jit)
+    settings = Settings(interpolation=opts.interpolation, substeps=opts.substeps, smooth=opts.smooth, jit=opts.jit,
+                        noise=opts.noise, doubts=opts.doubts)
     select = opts.select
     if library is not None:
         if not isinstance(library, Library):
@@ -156,6 +160,12 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         refined, screened = _refine_once(refined, used, measured, settings, select, library, screening, rule)
         proposed.append(screened)
         rounds += 1
+    info = refined.metadata["refine"]
+    stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
+    if not stuck and select and rule.model_choice != "evidence":  # the structure that validates
+        n_candidates = len(library) if library is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
+        refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates,
+                                   info["short_segments"])
     meta = refined.metadata["refine"]
     meta.update(samples=note, smoothed_sign=opts.smooth, rounds=rounds,
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
@@ -169,17 +179,42 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
             f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
             "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
             "does)"), stacklevel=2)
-    if meta["effective_fraction"] < LOW_FRACTION:
-        warnings.warn(RefineWarning(
-            f"output-error refinement: the residual is strongly correlated (N_eff/N = {meta['effective_fraction']:.3g}): "
-            "the model misses part of the record's dynamics (or the record is closed-loop, where an inverse model "
-            "fits better); term selection was made stricter by that factor, and the posterior standard deviations, "
-            "which assume white residuals, are too small"), stacklevel=2)
+    if meta["doubts"] or not meta["hypersensitive"]:  # a hypersensitive record's residual follows its input anyway
+        _warn(meta)
     return refined
 
 
-#: ``N_eff / N`` of the output-error residual below which :func:`refine` warns.
-LOW_FRACTION = 0.1
+def _warn(meta: dict) -> None:
+    """One RefineWarning: the likelihood does not hold (in a closed loop no term was selected; else the fit was held
+    to short segments), or the residual depends on an input (model error: the structure is not validated)."""
+    if meta["doubts"] and not meta["adapted"]:
+        if meta["biased"]:  # non-white innovations alone are recorded: the fit is the usual one
+            warnings.warn(RefineWarning("output-error refinement: its likelihood is doubtful here (" + "; ".join(
+                meta["doubts"]) + "); the fit and its evidence are reported as they are (doubts='report')"),
+                stacklevel=3)
+        return
+    if meta["biased"]:
+        what = " and ".join(w for w, on in (("the record looks closed-loop", meta["closed_loop"]),
+                                            ("the measured input is noisy", meta["input_noise"])) if on)
+        warnings.warn(RefineWarning(f"output-error refinement: {what}, where output error is biased, so no term was "
+                                    "selected on its evidence (identify reports the equation error's model where every state is measured): "
+                                    + "; ".join(meta["doubts"])), stacklevel=3)
+        return
+    if meta["doubts"]:
+        warnings.warn(RefineWarning(
+            "output-error refinement: the residual is not measurement noise the noise model describes ("
+            + "; ".join(meta["doubts"]) + f"), so it was fitted on segments of at most {meta['short_segments']} "
+            "samples, each from its own initial state, where no disturbance accumulates (identify reports the equation "
+            "error's model where every state is measured)"), stacklevel=3)
+        return
+    worse = [f"{t['channel']} on {k} ({r:.2g} x the threshold)" for t in meta["residual"]
+             for k, r in t["input_ratio"].items() if r > 1]
+    if worse:
+        warnings.warn(RefineWarning(
+            "output-error refinement: the residual depends on the input: " + ", ".join(worse) + f" (the "
+            f"{100 * (1 - RESIDUAL_LEVEL):g} % cross-correlation test): the model misrepresents how the input acts (a "
+            "missing or wrong term, the input's interpolation, a delay), and its structure is not validated by this "
+            "record"), stacklevel=3)
 
 
 #: Rounds of screening and selection at most when a state is not measured.
@@ -214,27 +249,43 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
     with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
-        if select:
-            n_obs = int(sum(r.n_samples for r in used)) * len(measured)
-            n_candidates = len(library) if library is not None else max(engine.base.size, 2)
+        held = settings.interpolation == "hold"  # a digital controller's held output is known exactly
+        noisy = doubts(residual_tests(engine, sol), used, measured, model.input_names, held).input_noise
+        adapt = settings.doubts == "adapt"
+        n_obs = int(sum(r.n_samples for r in used)) * len(measured)
+        n_candidates = len(library) if library is not None else max(engine.base.size, 2)
+
+        def per_term(wide):  # a residual correlated with every candidate counts fewer independent samples
+            return rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide)
+
+        selected = select and not (adapt and noisy)  # a selection would absorb the input noise's bias
+        if selected:
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
                                         sol, engine, library, lambda n: rule.nats_per_term(n, n_candidates))
                 engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
-            # a residual still correlated with every candidate in (unmodelled dynamics, a closed loop) carries
-            # fewer independent samples than it counts: each term must then earn proportionally more
-            sol = select_terms(engine, sol, alpha,
-                               lambda wide: rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide),
-                               twins, rule)
+            sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             bar.update()
+        tests = residual_tests(engine, sol)  # the loop and the innovations' whiteness: on the structure selected
+        doubted = doubts(tests, used, measured, model.input_names, held)
+        if adapt and doubted and not doubted.biased and sol.length > engine.length0:
+            # process noise: segments short enough that no disturbance accumulates in them
+            engine.longest = engine.length0
+            sol = engine.fit(engine.base if sol.active is None else sol.active, sol.theta, sol.alpha)
+            if selected:  # every kept term clears the penalty on the fit reported
+                sol = select_terms(engine, sol, alpha, per_term, twins, rule)
+            tests = residual_tests(engine, sol)
         fraction = residual_fraction(engine, sol)
     reach = record_horizon(engine, sol)
-    info = {"refine": {  # to_model adds the substeps and the interpolation
+    info = {"refine": {  # to_model adds the substeps, the interpolation and the noise model
         "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach, "hypersensitive": reach is not None,
         "penalty": sol.penalty,
         "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
-        "effective_fraction": round(fraction, 4)}}
+        "effective_fraction": round(fraction, 4), "residual": [as_record(t) for t in tests],
+        "doubts": list(doubted.reasons), "closed_loop": doubted.closed_loop, "input_noise": doubted.input_noise,
+        "biased": doubted.biased, "short_segments": engine.longest,
+        "adapted": settings.doubts == "adapt"}}
     return to_model(engine, sol, info), screened
 
 

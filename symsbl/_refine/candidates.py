@@ -194,7 +194,8 @@ def extend(engine: Engine, sol, alpha: np.ndarray, candidates: dict, screened: d
                 new = True
     if not new:
         return engine, sol, alpha
-    wider = Engine(engine.model, engine.records, engine.measured, engine.settings, merged, guess=engine.guess)
+    settings = dataclasses.replace(engine.settings, noise=engine.noise)  # the noise model the fit chose
+    wider = Engine(engine.model, engine.records, engine.measured, settings, merged, guess=engine.guess)
     alpha = prior(wider)
     theta = np.zeros(len(wider.positions))
     theta[wider.base] = sol.theta[engine.base]

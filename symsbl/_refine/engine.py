@@ -17,6 +17,7 @@ from .._base.rule import complexity
 from .._data.residuals import effective_fraction
 from .._derivatives.weakform import WeakForm
 from .._model import IdentifiedModel
+from .noise import innovations
 from .problem import Parameterisation, Records, choose_substeps
 from .rows import design_rows, state_guess
 from .sensitivity import Passes
@@ -40,6 +41,8 @@ class Settings:
     smooth: bool = True
     jit: object = "auto"
     growth: int = 8
+    noise: object = "white"
+    doubts: str = "adapt"
 
 
 class Engine:
@@ -65,6 +68,11 @@ class Engine:
         layout = Records.of(fitted, records, self.measured, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit)
         self.length0 = self._first_length()
+        #: The noise model of the fits: "white", an autoregressive order, or "auto" until a fit has chosen one
+        #: (every later fit of this engine keeps that order, so that their evidences compare).
+        self.noise = settings.noise
+        #: The longest segments of every fit (None: whole records), held short where disturbances accumulate.
+        self.longest: int | None = None
 
     def _sign_rate(self) -> float:
         """The largest stiffness ``|coef| |J| / eps`` a ``tanh(a / eps)`` standing for ``sign(a)`` adds at ``a = 0``,
@@ -102,10 +110,15 @@ class Engine:
             longest: int | None = None) -> Solution:
         """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
         from the segments and initial states of ``warm`` when given, else by continuation from short segments
-        up to ``longest`` samples (default: whole records)."""
-        return fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
-                   length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
-                   longest=longest)
+        up to ``longest`` samples (default: whole records, or the engine's :attr:`longest`)."""
+        if self.longest is not None:
+            longest = self.longest if longest is None else min(int(longest), self.longest)
+        sol = fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
+                  length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
+                  longest=longest, noise=self.noise)
+        if self.noise == "auto":
+            self.noise = sol.noise.order
+        return sol
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a state error past doubles is an infinite growth
@@ -125,14 +138,24 @@ def record_horizon(engine: Engine, sol: Solution) -> int | None:
 
 
 def residual_fraction(engine: Engine, sol: Solution) -> float:
-    """``N_eff / N`` of the output-error residual at ``sol`` (the smallest over the measured channels; 1 for
-    white residuals), from its autocorrelation (:func:`symsbl._data.residuals.effective_fraction`)."""
+    """``N_eff / N`` of the output-error residual at ``sol`` (of its innovations, with a noise model; the
+    smallest over the measured channels; 1 for white residuals), from its autocorrelation (:func:`symsbl._data.residuals.effective_fraction`)."""
     passes = engine.passes
     n = passes.records.n_total
+    seg = passes.segments(sol.starts)
     with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.simulate(sol.theta, sol.X0, passes.segments(sol.starts))[
-            :, list(passes.records.measured)]
+        R = passes.records.Y - passes.simulate(sol.theta, sol.X0, seg)[:, list(passes.records.measured)]
     valid = passes.valid[:n] & np.isfinite(R)
+    noise = sol.noise
+    if noise.order:  # the innovations: what the noise model leaves of the residual
+        ends = np.append(seg.starts[1:], n)
+        E = np.full_like(R, np.nan)
+        for c in range(R.shape[1]):
+            for a, b in zip(seg.starts, ends):
+                if b - a > noise.order:
+                    E[a + noise.order:b, c] = innovations(np.where(valid[a:b, c], R[a:b, c], np.nan), noise.ar[c])
+        R = E
+        valid = valid & np.isfinite(R)
     fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
     return max(min(fractions, default=1.0), 1e-3)
 

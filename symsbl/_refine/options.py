@@ -8,6 +8,7 @@ from typing import ClassVar
 
 from .._base.checks import Constraint, check_params
 from .._base.errors import ParameterError, expected
+from .noise import MAX_ORDER
 from .problem import INTERPOLATIONS
 
 __all__ = ["RefineOptions", "MAX_SAMPLES", "as_options"]
@@ -36,6 +37,15 @@ class RefineOptions:
         Samples refined on at most; longer records contribute evenly spaced windows.
     jit : {"auto", True, False}
         Compile the passes with a C compiler when one is available.
+    noise : {"auto", "white"} or int
+        The noise model of the output error: ``"auto"`` (default) an autoregressive filter per measured channel
+        whose order is chosen by BIC on the fitted residual (order 0, white noise, when the residual is white),
+        ``"white"``, or a given order (see :mod:`symsbl._refine.noise`).
+    doubts : {"adapt", "report"}
+        What a fit does when its residual tests doubt its likelihood (non-white innovations, a noisy measured
+        input, a closed loop): ``"adapt"`` (default) refits on short segments, or in a closed loop keeps the
+        structure it was given; ``"report"`` fits as usual and only records and warns (for fits whose evidences
+        must compare on one likelihood, as the branches of a hidden-state search).
 
     Examples
     --------
@@ -55,6 +65,8 @@ class RefineOptions:
     smooth: bool = True
     max_samples: int = MAX_SAMPLES
     jit: object = "auto"
+    noise: object = "auto"
+    doubts: str = "adapt"
 
     #: Each option's accepted values (checked by :meth:`check`, where the options enter a computation).
     _constraints: ClassVar[dict] = {
@@ -64,6 +76,8 @@ class RefineOptions:
         "smooth": Constraint.boolean(),
         "max_samples": Constraint.integer(low=64),
         "jit": Constraint.choice(("auto", True, False)),
+        "noise": Constraint.integer(low=0, high=MAX_ORDER, options=("auto", "white")),
+        "doubts": Constraint.choice(("adapt", "report")),
     }
 
     def check(self) -> RefineOptions:

@@ -20,7 +20,8 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
     holds the integrator settings (RK4 substeps, input interpolation) it was fitted with, which
     :func:`symsbl.validate_model` re-simulates it with (a Coulomb force of 5 % of the excitation,
     re-simulated with one step per sample instead of the fit's four, strayed 0.35 % from the truth)."""
-    fitted = {"substeps": engine.substeps, "interpolation": engine.settings.interpolation}
+    fitted = {"substeps": engine.substeps, "interpolation": engine.settings.interpolation,
+              "noise": noise_record(engine.measured, sol)}
     info = dict(info, refine={**fitted, **info.get("refine", {})})
     post, active = sol.posterior, list(sol.active)
     where = {engine.positions[k]: n for n, k in enumerate(active)}
@@ -46,6 +47,19 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
     model = dataclasses.replace(engine.model, equations=tuple(equations), fit=FitMethod.OUTPUT_ERROR,
                                 measured=engine.measured, metadata=dict(engine.model.metadata, **info))
     return dataclasses.replace(model, joint_covariance=_joint(model, free_order, post.covariance))
+
+
+def noise_record(measured, sol: Solution) -> dict:
+    """Per measured channel, its noise model as the model file records it: ``{"model": "white" | "AR(p)",
+    "ar": [a_1, ...], "innovation_std": sigma}``."""
+    out = {}
+    for c, name in enumerate(measured):
+        ar = [] if sol.ar is None else [float(a) for a in sol.ar[c]]
+        while ar and ar[-1] == 0.0:
+            ar.pop()
+        out[name] = {"model": f"AR({len(ar)})" if ar else "white", "ar": ar,
+                     "innovation_std": float(1.0 / math.sqrt(sol.w[c]))}
+    return out
 
 
 def _block(cov: np.ndarray, idx: list) -> np.ndarray:

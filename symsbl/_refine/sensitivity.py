@@ -195,12 +195,18 @@ class Blocks:
         The weighted squared residuals of each channel.
     end_S : ndarray, shape (n_segments, ns, n_states)
         The sensitivities (transposed) at each segment's last sample.
+    n_kept : ndarray, shape (n_segments, n_measured)
+        The samples each segment contributes per channel (measured, and with their noise model's lags).
+    residual : ndarray, shape (n_total, n_measured), optional
+        The raw residual ``y - h`` of every sample (unweighted, not whitened; not carried by :meth:`where`).
     """
 
     H: np.ndarray
     g: np.ndarray
     rr: np.ndarray
     end_S: np.ndarray
+    n_kept: np.ndarray
+    residual: np.ndarray | None = None
 
     @property
     def cost(self) -> float:
@@ -211,7 +217,7 @@ class Blocks:
         """The blocks of ``other`` for the segments in ``mask``, these elsewhere."""
         pick = lambda a, b: np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)  # noqa: E731
         return Blocks(pick(self.H, other.H), pick(self.g, other.g), pick(self.rr, other.rr),
-                      pick(self.end_S, other.end_S))
+                      pick(self.end_S, other.end_S), pick(self.n_kept, other.n_kept))
 
 
 class Passes:
@@ -244,7 +250,7 @@ class Passes:
         self._x_start = np.zeros((self.n_pad, lay["nx"]))
         self.n_obs = self.valid.sum(axis=0)
         # consecutive valid samples ending at each row, per channel (a whitening filter needs its lags valid)
-        self._valid_run = _runs(self.valid)
+        self.valid_runs = _runs(self.valid)
 
     # -- segments ------------------------------------------------------------------------------
     def segment_starts(self, length: int) -> np.ndarray:
@@ -309,19 +315,24 @@ class Passes:
         H = np.zeros((K, ns, ns))
         g = np.zeros((K, ns))
         rr = np.zeros((K, ny))
+        kept = np.zeros((K, ny))
+        residual = np.empty((self.records.n_total, ny))
         end_S = np.zeros((K, ns, nx))
         buf.set_arg(3, memoryview(theta))
         buf.set_res(0, memoryview(zout))
         buf.set_res(1, memoryview(hout))
         buf.set_res(2, memoryview(jout))
         with one_blas_thread():
-            self._chunks(buf, call, seg, ar, sw, z0, zout, hout, jout, H, g, rr, end_S)
-        return Blocks(H, g, rr, end_S)
+            self._chunks(buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual)
+        return Blocks(H, g, rr, end_S, kept, residual)
 
-    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, zout, hout, jout, H, g, rr, end_S) -> None:
+    @np.errstate(over="ignore", invalid="ignore")  # a simulation that runs away gives non-finite blocks, refused later
+    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual) -> None:
         """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks."""
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
+        zout, hout, jout = outs
+        H, g, rr, end_S, kept = sums
         order = ar.shape[1]
         lag_r = np.zeros((order, ny))
         lag_j = np.zeros((order, ny, ns))
@@ -335,6 +346,7 @@ class Passes:
             if n <= 0:
                 break
             R = self.Y[a:a + n] - hout[:n]                                   # (n, ny)
+            residual[a:a + n] = np.where(self.valid[a:a + n], R, np.nan)
             J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)               # (n, ny, ns)
             E, EJ, keep = R, J, self.valid[a:a + n]
             if order:
@@ -345,13 +357,14 @@ class Passes:
                 for i in range(1, order + 1):
                     E += ar[:, i - 1] * R_ext[order - i:order - i + n]
                     EJ += ar[:, i - 1][None, :, None] * J_ext[order - i:order - i + n]
-                keep = keep & (seg.since[a:a + n, None] >= order) & (self._valid_run[a:a + n] > order)
+                keep = keep & (seg.since[a:a + n, None] >= order) & (self.valid_runs[a:a + n] > order)
                 lag_r, lag_j = R_ext[-order:], J_ext[-order:]
             weight = sw[None, :] * keep                                      # (n, ny)
             E = E * weight
             EJ = EJ * weight[:, :, None]
             p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
             _accumulate(H, g, rr, seg.piece_starts[p0:p1] - a, seg.piece_segment[p0:p1], n, E, EJ)
+            np.add.at(kept, seg.piece_segment[p0:p1], np.add.reduceat(keep, seg.piece_starts[p0:p1] - a, axis=0))
             last = seg.ends[(seg.ends >= a) & (seg.ends < a + n)]
             if last.size:
                 end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)

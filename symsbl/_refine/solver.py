@@ -21,6 +21,7 @@ import numpy as np
 from .._base.errors import SimulationError, expected
 from .._data.trajectory import third_difference_std
 from .laplace import Posterior, mackay_fixed_point, posterior
+from .noise import NoiseModel, choose_order, fit_ar
 from .sensitivity import Blocks, Passes, Segments
 
 __all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "initial_states", "horizon", "PHI_STOP"]
@@ -45,8 +46,10 @@ class Iterate:
     X0 : ndarray, shape (n_segments, n_states)
     seg : Segments
     w : ndarray, shape (n_measured,)
-        Noise precisions of the measured channels.
+        Noise precisions of the measured channels (of their innovations, with an autoregressive noise model).
     blocks : Blocks or None
+    ar : ndarray, shape (n_measured, order), optional
+        The autoregressive noise model (see :mod:`symsbl._refine.noise`); None: white noise.
     """
 
     theta: np.ndarray
@@ -54,12 +57,17 @@ class Iterate:
     seg: Segments
     w: np.ndarray
     blocks: Blocks | None = None
+    ar: np.ndarray | None = None
+
+    @property
+    def order(self) -> int:
+        return 0 if self.ar is None else int(self.ar.shape[1])
 
     def evaluated(self, passes: Passes) -> tuple[Iterate, int]:
         """This iterate with its pass made (and the number of passes that took: 0 or 1)."""
         if self.blocks is not None:
             return self, 0
-        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w)), 1
+        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w, self.ar)), 1
 
 
 @dataclass
@@ -82,6 +90,13 @@ class Solution:
     #: The nats per term selection asked for; refits' evidence for terms the posterior put below it (by index).
     penalty: float | None = None
     confirmed: dict = field(default_factory=dict)
+    ar: np.ndarray | None = None
+    n_kept: np.ndarray | None = None
+
+    @property
+    def noise(self) -> NoiseModel:
+        """The noise model of the fit."""
+        return NoiseModel(np.zeros((self.w.size, 0)) if self.ar is None else self.ar)
 
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -208,7 +223,7 @@ def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.
         dxx = np.einsum("kii->ki", Hxx)
         Hxx[:, np.arange(nx), np.arange(nx)] += 1e-9 * dxx + 1e-300
         dX = np.linalg.solve(Hxx, blocks.g[:, npar:, None])[:, :, 0] * shrink[:, None]
-        trial = passes.sensitivities(it.theta, X0 + dX, it.seg, it.w)
+        trial = passes.sensitivities(it.theta, X0 + dX, it.seg, it.w, it.ar)
         n_pass += 1
         c2 = 0.5 * trial.rr.sum(1)
         better = np.isfinite(c2) & (c2 <= cost)
@@ -222,24 +237,70 @@ def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.
     return replace(it, X0=X0, blocks=blocks), n_pass
 
 
-# -- the noise precisions ----------------------------------------------------------------------------
+# -- the noise model ---------------------------------------------------------------------------------
 def _reweight(passes: Passes, it: Iterate, n_free: int) -> np.ndarray:
-    """New noise precisions from the residuals (degrees of freedom shared in proportion to the samples)."""
+    """New noise precisions from the (whitened) residuals, the degrees of freedom shared in proportion to the
+    samples."""
+    n_kept = it.blocks.n_kept.sum(0)
     dof = n_free + len(it.seg) * passes.layout["nx"]
-    keep = 1.0 - dof / max(passes.n_obs.sum(), 1)
+    keep = 1.0 - dof / max(n_kept.sum(), 1)
     ssr = it.blocks.rr.sum(0) / it.w
-    return passes.n_obs * max(keep, 0.5) / np.maximum(ssr, 1e-300)
+    return n_kept * max(keep, 0.5) / np.maximum(ssr, 1e-300)
 
 
-def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool):
-    """LM at the current noise precisions, then once more if their estimate moved by more than 2 %."""
+def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
+    """The autoregressive coefficients of every channel's residual at ``it`` (``order``: an int, or "auto" to
+    choose it by BIC per channel; channels padded with zeros to the largest order); None for white noise."""
+    if order != "auto" and int(order) == 0:
+        return None
+    if it.blocks.residual is None:  # blocks merged from two passes (initial states): the residual of one pass
+        it, _ = replace(it, blocks=None).evaluated(passes)
+    R, since = it.blocks.residual, it.seg.since
+    run = passes.valid_runs[:R.shape[0]]
+    ny = R.shape[1]
+    orders = [choose_order(R[:, c], since, run[:, c]) if order == "auto" else int(order) for c in range(ny)]
+    p = max(orders, default=0)
+    if p == 0:
+        return None
+    ar = np.zeros((ny, p))
+    for c, pc in enumerate(orders):
+        ar[c, :pc] = fit_ar(R[:, c], since, run[:, c], pc, hold=p)[0]
+    return ar
+
+
+#: Rounds of alternating noise-model and coefficient estimates at most (iterated generalised least squares).
+NOISE_ROUNDS = 4
+
+
+def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white"):
+    """LM at the current noise model, then the noise re-estimated and LM again while it moves (its precisions by
+    more than 2 %, an autoregressive coefficient by more than 0.01). ``noise``: "white", an autoregressive
+    order, or "auto" (the order chosen by BIC)."""
     it, n = lm(passes, it, alpha, active, tol=tol)
-    if update_noise:
-        w_new = _reweight(passes, it, active.size)
-        if np.max(np.abs(np.log(w_new / it.w))) > 0.02:
-            it, n2 = lm(passes, replace(it, w=w_new, blocks=None), alpha, active, tol=tol)
-            n += n2
+    if not update_noise:
+        return it, n
+    for _ in range(NOISE_ROUNDS):
+        ar = None if noise == "white" else _noise_model(passes, it, noise)
+        if noise == "auto":
+            noise = 0 if ar is None else ar.shape[1]  # the order is chosen once, the coefficients follow
+        trial = replace(it, ar=ar, blocks=None) if not _same_ar(ar, it.ar) else it
+        if trial is not it:
+            trial, n1 = trial.evaluated(passes)
+            n += n1
+        w_new = _reweight(passes, trial, active.size)
+        if trial is it and np.max(np.abs(np.log(w_new / it.w))) <= 0.02:
+            break
+        it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=tol)
+        n += n2
+        if ar is None:  # white noise: one re-estimate of the precisions, as the noise rarely moves again
+            break
     return it, n
+
+
+def _same_ar(a: np.ndarray | None, b: np.ndarray | None, tol: float = 0.01) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return a.shape == b.shape and bool(np.max(np.abs(a - b), initial=0.0) <= tol)
 
 
 # -- the continuation policy -------------------------------------------------------------------------
@@ -350,18 +411,20 @@ def _stage(length: int, it: Iterate, n: int, phi: float, **extra) -> dict:
 
 
 def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int, full: int, growth: int,
-                  tol: float, update_noise: bool):
+                  tol: float, update_noise: bool, noise="white"):
     """The stages of :func:`fit` from segments of ``length`` samples: ``iterate, length, stages, passes``.
 
     Each stage fits at its segment length; then the whole records are tried (:func:`_jump`) until once
     they amplified the state past :data:`PHI_STOP`; else the segments grow (:func:`_lengthen`). A length
     whose fit amplifies the state past :data:`PHI_STOP` sends the fit back to the last length that did not.
+    ``noise="auto"`` chooses the noise model's order on the final stage (before it, the order reached so far).
     """
     scale = _state_scale(guess, it.X0)
     stages, previous, leap, jumped, n_pass = [], None, True, False, 0
     while True:
         final = length >= full
-        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise)
+        policy = noise if (final or noise != "auto") else it.order
+        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy)
         n_pass += n
         phi = _growth(it.blocks.end_S, it.theta.size, scale)
         stages.append(_stage(length, it, n, phi))
@@ -374,7 +437,7 @@ def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int
             if jumped:  # whole records that grew once fitted: lengthen stage by stage from before the jump
                 stages[-1]["back"], leap, jumped = True, False, False
                 continue
-            it, n = _settle_noise(passes, it, alpha, active, tol, update_noise)
+            it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, noise)
             n_pass += n
             stages.append(_stage(length, it, n, float("nan"), back=True))
             break
@@ -398,7 +461,7 @@ def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int
 
 def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
         update_noise: bool = True, mackay: bool = True, tol: float = 1e-4, warm: Solution | None = None,
-        longest: int | None = None) -> Solution:
+        longest: int | None = None, noise="white") -> Solution:
     """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
 
     Parameters
@@ -423,6 +486,10 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         the segments do not grow again (the structure's optimum is near).
     longest : int, optional
         The segments grow to at most this length (default: whole records).
+    noise : {"white", "auto"} or int
+        The noise model: white, autoregressive of the order chosen by BIC on the final stage's residual, or of
+        a given order (its coefficients estimated alternately with the model's; see
+        :mod:`symsbl._refine.noise`).
     """
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
@@ -432,13 +499,18 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     full = full if longest is None else min(int(longest), full)
     length = min(length0, full)
     if warm is not None:
-        it = Iterate(theta, warm.X0.copy(), passes.segments(warm.starts), w)
+        it = Iterate(theta, warm.X0.copy(), passes.segments(warm.starts), w, ar=warm.ar)
         length, full, n_pass = warm.length, warm.length, 0
     else:
         starts = passes.segment_starts(length)
         it, n_pass = initial_states(passes, Iterate(theta, guess[starts].copy(), passes.segments(starts), w))
-    it, length, stages, n = _continuation(passes, it, alpha, active, guess, length, full, growth, tol, update_noise)
+    it, length, stages, n = _continuation(passes, it, alpha, active, guess, length, full, growth, tol, update_noise,
+                                          noise)
     n_pass += n
+    if noise == "auto" and length < full and update_noise:  # the continuation stopped short: choose it here
+        it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto")
+        n_pass += n
+        stages.append(_stage(length, it, n, float("nan"), noise=it.order))
     _require_finite(it.theta, it.blocks.H)
     if mackay:
         alpha = _prior_precisions(it.blocks.H, it.theta, alpha, active)
@@ -447,7 +519,11 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         n_pass += n
     Hs, _ = restrict(it.blocks.H, None, active, it.theta.size)
     cost = _objective(it.blocks, it.theta, alpha, active)
-    post = posterior(Hs, it.theta[active], alpha[active], cost, passes.n_obs, it.w)
+    n_kept = it.blocks.n_kept.sum(0)
+    post = posterior(Hs, it.theta[active], alpha[active], cost, n_kept, it.w)
+    if it.order:  # the noise model's own Occam factor: 1/2 log n a coefficient (BIC), as its order was chosen
+        occam = 0.5 * float(np.sum(np.count_nonzero(it.ar, axis=1) * np.log(np.maximum(n_kept, 2))))
+        post = replace(post, log_evidence=post.log_evidence - occam)
     return Solution(theta=it.theta, X0=it.X0, starts=it.seg.starts.copy(), length=length, cost=float(cost),
                     ssr=it.blocks.rr.sum(0) / it.w, w=it.w.copy(), alpha=alpha, posterior=post, H=it.blocks.H,
-                    stages=stages, n_pass=n_pass, active=active)
+                    stages=stages, n_pass=n_pass, active=active, ar=it.ar, n_kept=n_kept)

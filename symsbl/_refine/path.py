@@ -1,0 +1,221 @@
+"""The model path: which structure the identification keeps, chosen by a validation it did not fit.
+
+The evidence of an output-error fit is exact only when its likelihood is: white (or correctly modelled)
+noise, a model class that contains the truth, an exact input, an open loop. On measured records none of these
+is certain, and each extra term buys evidence by absorbing what the likelihood misdescribes. So the structure
+the evidence selected, the equation error's and every structure between them and below them (backward
+elimination by Bayesian model reduction from their union, each refitted) are fitted by output error in one
+compiled engine, each is scored by its evidence and by its cross-validated free-run error
+(:mod:`.crossval`), and the :class:`~symsbl.SelectionRule` chooses (by default the fewest terms whose
+cross-validated error is within one standard error of the best).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._base.errors import SimulationError
+from .._base.rule import SelectionRule, paired_se
+from .._data.trajectory import third_difference_std
+from .._model import IdentifiedModel, ModelPath, PathEntry
+from .candidates import prior
+from .crossval import cross_validate, folds
+from .diagnostics import as_record, residual_tests
+from .engine import Engine, Settings, residual_fraction
+from .laplace import reduce_model
+from .result import to_model
+from .selection import _every_term_clears
+
+__all__ = ["choose_structure", "MAX_PATH"]
+
+#: Backward elimination steps at most.
+MAX_PATH = 12
+#: A path stops descending once a structure's cross-validated error is this many times the best one's.
+STOP_RATIO = 4.0
+
+
+def _names(engine: Engine, active) -> tuple:
+    """Per fitted equation, ``(lhs, term names)`` of the coefficients ``active``."""
+    out = []
+    chosen = set(int(k) for k in active)
+    for i, eq in enumerate(engine.full.equations):
+        if eq.fixed:
+            continue
+        names = tuple(eq.terms[j].name for k, (ii, j) in enumerate(engine.positions) if ii == i and k in chosen)
+        out.append((eq.lhs, names))
+    return tuple(out)
+
+
+def _backward(engine: Engine, sol, alpha: np.ndarray):
+    """The next structure below ``sol``: the term whose removal Bayesian model reduction says costs least, refitted
+    (None when every fitted equation is down to one term, or the refit runs away)."""
+    active = [int(k) for k in sol.active]
+    per_equation = {}
+    for k in active:
+        per_equation.setdefault(engine.positions[k][0], []).append(k)
+    removable = [n for n, k in enumerate(active) if len(per_equation[engine.positions[k][0]]) > 1]
+    if not removable:
+        return None
+    a = sol.alpha[sol.active]
+    gains = {n: reduce_model(sol.posterior, a, [n])[0] for n in removable}
+    off = max(gains, key=gains.get)
+    _, mean, _ = reduce_model(sol.posterior, a, [off])
+    keep = [k for n, k in enumerate(active) if n != off]
+    start = np.zeros_like(sol.theta)
+    start[keep] = mean
+    try:
+        refit = engine.fit(keep, start, alpha, warm=sol)
+    except (SimulationError, np.linalg.LinAlgError):
+        return None
+    return refit if np.isfinite(refit.posterior.log_evidence) else None
+
+
+def _noise_floor(passes) -> float:
+    """The cross-validated error of a perfect model: each measured channel's noise (third differences) relative
+    to its spread, averaged over the channels, as the folds' errors are."""
+    n = passes.records.n_total
+    Y, valid = passes.records.Y, passes.valid[:n]
+    levels = []
+    for c in range(Y.shape[1]):
+        y = Y[valid[:, c], c]
+        spread = float(np.std(y))
+        levels.append(third_difference_std(y) / spread if spread > 0 else 0.0)
+    return float(np.mean(levels)) if levels else 0.0
+
+
+def _positions(engine: Engine, model: IdentifiedModel) -> list[int]:
+    """The engine's coefficients that are ``model``'s terms (by equation and name)."""
+    wanted = {(eq.lhs, t.name) for eq in model.equations if not eq.fixed for t in eq.terms if not t.fixed}
+    out = []
+    for k, (i, j) in enumerate(engine.positions):
+        eq = engine.full.equations[i]
+        if (eq.lhs, eq.terms[j].name) in wanted:
+            out.append(k)
+    return out
+
+
+def _fit(engine: Engine, active, theta0: np.ndarray, alpha: np.ndarray, warm=None):
+    start = np.zeros_like(theta0)
+    start[active] = theta0[active]
+    try:
+        sol = engine.fit(active, start, alpha, warm=warm)
+    except (SimulationError, np.linalg.LinAlgError):
+        return None
+    return sol if np.isfinite(sol.posterior.log_evidence) else None
+
+
+def _union(start: IdentifiedModel, refined: IdentifiedModel, records, measured, settings: Settings):
+    """One engine for the union of the two structures (``refined``'s noise order kept), the prior precisions, the
+    starting coefficients (each structure's own) and the equation error's coefficients by (state, term)."""
+    order = max((len(v["ar"]) for v in refined.metadata.get("refine", {}).get("noise", {}).values()), default=0)
+    extra = {}
+    for eq in refined.equations:
+        if eq.fixed or eq.lhs not in start.state_names:
+            continue
+        theirs = [t for t in start.equation(eq.lhs).terms if t.name not in set(eq.names)]
+        if theirs:
+            extra[eq.lhs] = [(t.expr, t.coef) for t in theirs]
+    engine = Engine(refined, records, measured, dataclasses.replace(settings, noise=order), extra)
+    theta0 = np.zeros(len(engine.positions))
+    theta0[engine.base] = engine.param.theta0[engine.base]
+    by_name = {(eq.lhs, t.name): t.coef for eq in start.equations for t in eq.terms}
+    base = set(engine.base.tolist())
+    for k, (i, j) in enumerate(engine.positions):
+        if k not in base:
+            eq = engine.full.equations[i]
+            theta0[k] = by_name.get((eq.lhs, eq.terms[j].name), 0.0)
+    return engine, prior(engine), theta0, by_name
+
+
+def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
+    """The union's fit and the fits of the evidence's and the equation error's structures (None: ran away)."""
+    union = _fit(engine, np.arange(len(engine.positions)), theta0, alpha)
+    if union is None:
+        return None, {}
+    fits = {"evidence": _fit(engine, engine.base, theta0, alpha, warm=union)}
+    ee = _positions(engine, start)
+    if ee:  # from the equation error's own coefficients, by continuation: the union's are fitted with other terms
+        own = theta0.copy()
+        for k in ee:
+            i, j = engine.positions[k]
+            eq = engine.full.equations[i]
+            own[k] = by_name[(eq.lhs, eq.terms[j].name)]
+        fits["equation error"] = _fit(engine, ee, own, alpha)
+    return union, fits
+
+
+def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
+    """``(solution, source, fold errors)`` of the candidates and of the backward path from the union, which stops
+    descending once a structure's error is :data:`STOP_RATIO` times the best (simpler ones only lose more)."""
+    seen, entries = {}, []
+
+    def add(sol, source: str) -> float:
+        key = frozenset(int(k) for k in sol.active)
+        if key not in seen:
+            seen[key] = len(entries)
+            entries.append((sol, source, cross_validate(engine.passes, sol, cv).fold_errors))
+        return float(np.mean(entries[seen[key]][2]))
+
+    for source, sol in fits.items():
+        if sol is not None:
+            add(sol, source)
+    current, latest = union, add(union, "path")
+    for _ in range(MAX_PATH):
+        best = min(float(np.mean(e)) for _, _, e in entries)
+        if not np.isfinite(latest) or latest > STOP_RATIO * best:
+            break
+        current = _backward(engine, current, alpha)
+        if current is None:
+            break
+        latest = add(current, "path")
+    return entries
+
+
+def choose_structure(start: IdentifiedModel, refined: IdentifiedModel, records, measured, settings: Settings,
+                     rule: SelectionRule, n_candidates: int, longest: int | None = None) -> IdentifiedModel:
+    """The structure the identification keeps, with the model path it was chosen from.
+
+    Parameters
+    ----------
+    start : IdentifiedModel
+        The equation error's model.
+    refined : IdentifiedModel
+        The output error's, its structure selected on the evidence.
+    records, measured, settings
+        What ``refined`` was fitted on and how (its noise model's order is kept).
+    rule : SelectionRule
+    n_candidates : int
+        Candidates the terms were chosen from (the penalty's ``M``).
+    longest : int, optional
+        The longest segments of the fits (``refined``'s, when held short).
+    """
+    engine, alpha, theta0, by_name = _union(start, refined, records, measured, settings)
+    engine.longest = longest
+    union, fits = _candidates(engine, start, alpha, theta0, by_name)
+    cv = folds(engine.passes, engine.length0)
+    if union is None or cv is None:
+        return refined
+    entries = _scored(engine, union, fits, alpha, cv)
+    cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
+    sizes = [int(sol.active.size) for sol, _, _ in entries]
+    objectives = [float(sol.posterior.log_evidence) - cost * n for (sol, _, _), n in zip(entries, sizes)]
+    E = np.array([e for _, _, e in entries])
+    chosen, reason = rule.choose(sizes, objectives, E, floor=_noise_floor(engine.passes))
+    mean = np.where(np.all(np.isfinite(E), axis=1), E.mean(axis=1), np.inf)
+    best = int(np.argmin(mean))
+    path = ModelPath(tuple(PathEntry(_names(engine, entries[k][0].active), sizes[k],
+                                     float(entries[k][0].posterior.log_evidence), objectives[k], float(mean[k]),
+                                     paired_se(E[k], E[best]), entries[k][1], k == chosen)
+                           for k in sorted(range(len(entries)), key=lambda k: (sizes[k], -objectives[k]))), reason)
+    sol = entries[chosen][0]
+    if entries[chosen][1] == "evidence":
+        return dataclasses.replace(refined, path=path)
+    sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
+    meta = dict(refined.metadata.get("refine", {}))
+    meta.update(segment_length=int(sol.length), stages=sol.stages, passes=int(sol.n_pass),
+                log_evidence=float(sol.posterior.log_evidence),
+                effective_fraction=round(residual_fraction(engine, sol), 4),
+                residual=[as_record(t) for t in residual_tests(engine, sol)], chosen_by=reason)
+    return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
