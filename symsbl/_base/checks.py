@@ -13,7 +13,7 @@ from .errors import DataError, ParameterError, SymsblError, expected
 __all__ = ["integer", "number", "flag", "choice", "enough_rows", "Constraint", "check_params"]
 
 
-def integer(name: str, value, *, low: int | None = None, high: int | None = None,
+def integer(name: str, value, *, low: float | None = None, high: float | None = None,
             error: type[SymsblError] = ParameterError) -> int:
     """``value`` as an int in ``[low, high]``; bools and floats are refused.
 

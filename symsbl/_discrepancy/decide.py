@@ -118,7 +118,7 @@ def null_gains(design, structure, model, train, velocity, candidates, noise, n_b
     system = model.to_system()
     U = train.inputs if train.inputs.shape[1] else None
     x0 = train.states[0]
-    out = []
+    out: list[float] = []
     try:
         clean = simulate(system, train.t, inputs=None if U is None else Sampled(train.t, U), x0=x0, method="rk4",
                          on_divergence="raise")

@@ -169,7 +169,7 @@ class Equation:
     def __str__(self) -> str:
         if self.fixed:
             return f"{self.lhs}' = " + " + ".join(pretty(t.name) for t in self.terms) + "  (kinematics, fixed)"
-        parts = []
+        parts: list[str] = []
         for t in self.terms:
             text = format_uncertain(t.coef, t.std, signed=bool(parts)) if not t.fixed else (
                 f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")

@@ -232,5 +232,6 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
                 continue
             part = block_stats(traj.states, Z, r0, r1, diff, evaluator, traj.dt, chunk_size, bar)
             total = part if total is None else total + part
+    assert total is not None  # enough_rows() refused records without a row
     traj = trajectories[0]
     return RegressionStats(total, library, traj.state_names, traj.input_names, diff)

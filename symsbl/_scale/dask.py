@@ -99,7 +99,8 @@ class _Slice:
     r1: int
 
 
-def _slice_stats(arr, plan: _Slice, library: _PortableLibrary, diff, names, h, chunk_size, jit):
+def _slice_stats(arr, plan: _Slice, library: _PortableLibrary, diff, names: tuple[tuple[str, ...], tuple[str, ...]], h,
+                 chunk_size, jit):
     """Map step: (statistics, per-column minimum, per-column maximum) of one slice."""
     lib = library.load()
     arr = np.asarray(arr, dtype=float)

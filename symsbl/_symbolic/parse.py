@@ -86,6 +86,7 @@ def _tokens(text: str, where: str) -> list[tuple[str, str, int]]:
                 "the listed functions"
             )
         kind = m.lastgroup
+        assert kind is not None  # every alternative of _TOKEN is a named group
         out.append((kind, m.group(kind), m.start(kind)))
         pos = m.end()
     out.append(("end", "", len(text)))
