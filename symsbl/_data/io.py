@@ -16,8 +16,8 @@ import csv
 import io
 import math
 import os
-import stat
 import re
+import stat
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path

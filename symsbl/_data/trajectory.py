@@ -10,8 +10,8 @@ Files are read and written by :mod:`symsbl._data.io`.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -67,7 +67,7 @@ def _check_values(pre: str, names, columns) -> None:
                                      "remove or repair those rows", raw=True))
 
 
-def check_magnitude(traj: "Trajectory", source: str = "") -> None:
+def check_magnitude(traj: Trajectory, source: str = "") -> None:
     """Refuse states or inputs beyond :data:`MAX_MAGNITUDE` where data enter an identification or a
     validation (a diverged simulation may hold such values; measured data may not)."""
     pre = f"{source}: " if source else ""

@@ -185,7 +185,7 @@ class WeakForm(Differentiator):
     #: bin exceeds it with probability exp(-20) ~ 2e-9).
     NOISE_MARGIN: ClassVar[float] = 20.0
 
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> "WeakForm":
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> WeakForm:
         """Fix an automatic window (``window=None``) from the data; a set window is kept.
 
         The window duration is ``0.5 / f_hi``, where ``f_hi`` is the highest over the states

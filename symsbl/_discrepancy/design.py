@@ -35,7 +35,8 @@ class Design:
         self.library = Library(exprs, variables)
         self.derivative = derivative
         self._stats: dict[int, tuple[Trajectory, GramStats]] = {}
-        #: Effective-sample fraction of the rows (1 for independent residuals), see :func:`~symsbl._data.residuals.effective_fraction`.
+        #: Effective-sample fraction of the rows (1 for independent residuals), see
+        #: :func:`~symsbl._data.residuals.effective_fraction`.
         self.weight = 1.0
 
     def column(self, expr) -> int | None:

@@ -2,8 +2,8 @@
 
 The objective is the relevance vector machine's, the :class:`~symsbl.SelectionRule`'s: log evidence minus
 ``T`` nats per free term (``T = 1/2 log N + log M`` by default, the extended BIC with ``N`` the measured
-samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the equation-error
-runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
+samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the
+equation-error runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
 term without refitting; terms are removed one by one while that raises the objective. The structure
 it settles on is then refitted, and kept only if the refit confirms the gain.
 """

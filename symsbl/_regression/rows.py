@@ -16,8 +16,8 @@ The checks on what enters live here too, once: names, variation of states and in
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Iterator, Sequence
 
 import numpy as np
 

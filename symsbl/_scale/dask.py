@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import casadi as ca
 import numpy as np
@@ -71,7 +71,7 @@ class _PortableLibrary:
     key: str
 
     @classmethod
-    def of(cls, library: Library) -> "_PortableLibrary":
+    def of(cls, library: Library) -> _PortableLibrary:
         with ca.global_pickle_context():
             blob = pickle.dumps(library)
         return cls(blob, hashlib.sha1(blob).hexdigest())

@@ -13,9 +13,10 @@ import contextlib
 import math
 import struct
 import zipfile
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -120,8 +121,8 @@ def _npz_columns(path: Path, names: Sequence[str]) -> tuple[dict, int]:
         lengths: dict[str, int] = {}
         for name in names:
             if name not in members:
-                raise DataError(expected(f"{path}: column {name!r}", f"a column among {sorted(members)}", "no such column",
-                                         raw=True))
+                raise DataError(expected(f"{path}: column {name!r}", f"a column among {sorted(members)}",
+                                         "no such column", raw=True))
             info = members[name]
             with zf.open(info) as fh:
                 version = np.lib.format.read_magic(fh)
@@ -259,7 +260,8 @@ class RecordReader:
         if isinstance(record, Trajectory):
             self.label = f"records[{index}]"
             self.names = (record.state_names, record.input_names)
-            self._chunks = lambda: (record.slice(a, a + BLOCK_SAMPLES) for a in range(0, record.n_samples, BLOCK_SAMPLES))
+            self._chunks = lambda: (record.slice(a, a + BLOCK_SAMPLES)
+                                    for a in range(0, record.n_samples, BLOCK_SAMPLES))
         elif isinstance(record, ChunkedRecord):
             self.label = f"records[{index}] ({record.label})"
             states, inputs = record.state_names, record.input_names  # both None or both set

@@ -11,7 +11,7 @@ Two integrators, one registry (:data:`METHODS`):
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
