@@ -41,12 +41,12 @@ Run: ``python bench/bench_discrepancy.py [--part detection|cases|beyond|false-al
 import argparse
 import time
 
+import _report  # bench/ is on sys.path when run as a script
 import casadi as ca
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 import symsbl
-import _report  # bench/ is on sys.path when run as a script
 
 M, C, K, FRMS, FS = 2.0, 6.0, 3e4, 20.0, 2000.0
 FA = FRMS * np.sqrt(2)
@@ -148,7 +148,7 @@ def cases(args):
     print("|---|---|---|---|---|---|---|---|")
     for combo in combos:
         forces = [EFFECTS[e](args.size) for e in combo]
-        system = oscillator(lambda x, v: sum(f(x, v) for f in forces))
+        system = oscillator(lambda x, v, forces=forces: sum(f(x, v) for f in forces))
         for noise in args.noise:
             for n_records in args.records:
                 for seed in range(args.seeds):

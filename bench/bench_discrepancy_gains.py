@@ -15,11 +15,11 @@ import argparse
 import time
 from collections import Counter
 
+import _report  # bench/ is on sys.path when run as a script
 import numpy as np
 from bench_discrepancy import BASE, EFFECTS, FA, V, X, clean_records, oscillator
 
 import symsbl
-import _report  # bench/ is on sys.path when run as a script
 
 CUTS = (4.0, 5.0, 8.0)
 

@@ -29,9 +29,9 @@ import time
 import warnings
 
 import numpy as np
-
 from _report import one_blas_thread, table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 from bench_race import ALPHAS, THRESHOLDS, aicc_choice, compressed, term_keys, threshold_grid
+
 from symsbl import Sine, identify, polynomial, simulate, symbols, systems, time_grid, validate_model
 
 FS = 32768

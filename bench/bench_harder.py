@@ -30,10 +30,23 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-
 from _report import one_blas_thread, table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
-from symsbl import (Multisine, OdeSystem, Trajectory, compare_to_truth, identify, inputs, paper, polynomial,
-                    simulate, symbols, systems, time_grid, validate_model)
+
+from symsbl import (
+    Multisine,
+    OdeSystem,
+    Trajectory,
+    compare_to_truth,
+    identify,
+    inputs,
+    paper,
+    polynomial,
+    simulate,
+    symbols,
+    systems,
+    time_grid,
+    validate_model,
+)
 
 
 def _oscillator(m, c, k, k3):
@@ -102,7 +115,8 @@ def run_case(name, system, fs, seconds, force, noise, library, options):
                  .with_noise(noise, seed=1), keep)
     rows = []
     for label, refine in (("EE", False), ("OE", True)):
-        model, seconds_taken = timed(lambda: identify(train, library, refine=refine, **options), repeats=1)
+        model, seconds_taken = timed(lambda refine=refine: identify(train, library, refine=refine, **options),
+                                     repeats=1)
         truth = compare_to_truth(model, system)
         check = validate_model(model, held)
         held_err = max(check.nrmse.values()) if check.status == "ok" else float("nan")
@@ -120,7 +134,8 @@ def run_case(name, system, fs, seconds, force, noise, library, options):
 def main():
     with one_blas_thread():
         rows = [row for case in cases() for row in run_case(*case)]
-    table("Equation error (EE) against output error (OE)", ["case", "fit", "support", "max coef. error", "held-out NRMSE", "time"], rows)
+    table("Equation error (EE) against output error (OE)",
+          ["case", "fit", "support", "max coef. error", "held-out NRMSE", "time"], rows)
     write_page("harder", __doc__)
 
 

@@ -17,10 +17,10 @@ Run: ``python bench/bench_latent.py [--quick]`` (quick: one seed per case).
 import sys
 import time
 
+import _report  # bench/ is on sys.path when run as a script
 import numpy as np
 
 import symsbl
-import _report  # bench/ is on sys.path when run as a script
 
 FS, PERIOD = 1000.0, 4.096
 N = int(FS * PERIOD)
@@ -99,8 +99,8 @@ def run(name, params, law, noise, seed, periodic=True):
     truth = steady(system, 24.0, 50 + seed, 1, 2).column("x1")
     predicted = steady(model.to_system(), 24.0, 50 + seed, 1, 2).column("x1")
     held = float(np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std())
-    print(f"| {name}{'' if periodic else ', transient record'} | {100 * noise:g} % | {seed} | {verdict} | {'yes' if right else 'NO'} | "
-          f"{100 * worst:.3g} % | {100 * held:.3g} % | {seconds:.1f} s |", flush=True)
+    print(f"| {name}{'' if periodic else ', transient record'} | {100 * noise:g} % | {seed} | {verdict} | "
+          f"{'yes' if right else 'NO'} | {100 * worst:.3g} % | {100 * held:.3g} % | {seconds:.1f} s |", flush=True)
     return right, worst, held, seconds
 
 

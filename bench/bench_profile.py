@@ -31,14 +31,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 import symsbl
 from symsbl import Multisine, identify_stream, open_npz, paper, simulate, symbols, systems
 from symsbl._regression import fit as _fit
 from symsbl._regression import gram as _gram
-from symsbl._symbolic import evaluator as _evaluator
 from symsbl._scale import stream
+from symsbl._symbolic import evaluator as _evaluator
 
 FS = 32768
 PIECE = 2**20

@@ -63,9 +63,9 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 import sympy as sp
+from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 
 import symsbl
-from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 from symsbl import Multisine, OdeSystem, Sine, Trajectory, simulate, systems, time_grid
 from symsbl._validate.truth import _true_terms
 

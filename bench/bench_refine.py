@@ -58,10 +58,24 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-
 from _report import one_blas_thread, table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
-from symsbl import (Multisine, Sampled, compare_to_truth, identify, identify_stream, inputs, open_npz,
-                    polynomial, refine, simulate, symbols, systems, time_grid, validate_model)
+
+from symsbl import (
+    Multisine,
+    Sampled,
+    compare_to_truth,
+    identify,
+    identify_stream,
+    inputs,
+    open_npz,
+    polynomial,
+    refine,
+    simulate,
+    symbols,
+    systems,
+    time_grid,
+    validate_model,
+)
 
 FS = 32768
 NOISE = 0.01

@@ -21,8 +21,8 @@ import argparse
 import itertools
 
 import numpy as np
-
 from _report import one_blas_thread, table, timed_together, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+
 from symsbl import RVM, GramStats
 from symsbl._regression.sbl import DenseGram
 
@@ -153,7 +153,10 @@ def speed(n=200_000, seed=0, repeats=5):
     D_copy = D.copy()
     stats = GramStats.from_arrays(D, y)
     entering = entering_columns(D, y)
-    before = lambda: RVM().fit_stats(GramStats(D.T @ D, (D.T @ y)[:, None], np.array([y @ y]), np.array([y.sum()]), n))
+
+    def before():
+        return RVM().fit_stats(GramStats(D.T @ D, (D.T @ y)[:, None], np.array([y @ y]), np.array([y.sum()]), n))
+
     runs = timed_together({
         "one pass over X: X^T y (the floor)": lambda: D.T @ y,
         "Gram, general product (gemm) on a copy of X": lambda: D.T @ D_copy,
@@ -179,7 +182,8 @@ def speed(n=200_000, seed=0, repeats=5):
                      f"{np.max(np.abs(out.coef_ - w)):.2e}"]
         rows.append([name, f"{seconds * 1e3:.1f}", f"{seconds / floor:.1f}"] + cells)
     print(f"N = {n}, M = {D.shape[1]}, 5 true terms, 1 % noise, seed {seed}; best of {repeats}, interleaved")
-    table("symsbl.RVM against ARDRegression", ["", "time (ms)", "in passes over X", "terms", "FP", "FN", "max|w-w*|"], rows)
+    table("symsbl.RVM against ARDRegression",
+          ["", "time (ms)", "in passes over X", "terms", "FP", "FN", "max|w-w*|"], rows)
     t_fit, t_ard = runs["fit(X, y) end to end"][1], runs["sklearn ARDRegression(fit_intercept=False)"][1]
     t_solve = runs["solve (default ebic)"][1]
     _, source = on_demand(D, y)

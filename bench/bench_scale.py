@@ -25,14 +25,23 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-
 from _report import table, timed, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
-from symsbl import Evaluator, WeakForm, identify, paper, symbols, systems
-from symsbl import identify_many
-from symsbl import RVM
-from symsbl import Sine
-from symsbl import simulate
-from symsbl import identify_stream, open_npz, stream_stats
+
+from symsbl import (
+    RVM,
+    Evaluator,
+    Sine,
+    WeakForm,
+    identify,
+    identify_many,
+    identify_stream,
+    open_npz,
+    paper,
+    simulate,
+    stream_stats,
+    symbols,
+    systems,
+)
 
 FS = 32768
 PIECE = 2**20
@@ -90,7 +99,7 @@ def scaling(path: Path, sizes):
     rows = []
     identify_stream(open_npz(path, **NAMES, stop=20000), LIB)  # compile the dictionary once
     for n in sizes:
-        def run(n_jobs):
+        def run(n_jobs, n=n):
             problem = stream_stats(open_npz(path, **NAMES, stop=n), LIB, n_jobs=n_jobs)
             t0 = time.perf_counter()
             return fit_stats(problem), time.perf_counter() - t0
@@ -100,7 +109,7 @@ def scaling(path: Path, sizes):
         ref = "not run (the record alone is 320 MB)"
         if n <= 10**6:
             traj = _trajectory(path, n)
-            _, dtm, peakm = measured(lambda: identify(traj, LIB))
+            _, dtm, peakm = measured(lambda traj=traj: identify(traj, LIB))
             ref = f"{dtm:.2f} s / {peakm:.0f} MiB"
         rows.append([f"{n:.0e}", f"{dt:.2f}", f"{dt - t_fit:.2f}", f"{1e9 * (dt - t_fit) / n:.0f}", f"{t_fit:.2f}",
                      f"{peak:.0f}", f"{dt2 - t_fit2:.2f}", f"{peak2:.0f}", ref, x2_support(model)])
@@ -114,7 +123,8 @@ def _trajectory(path: Path, n: int):
     from symsbl import Trajectory
 
     with np.load(path) as z:
-        return Trajectory(z["t"][:n], np.column_stack([z["x1"][:n], z["x2"][:n]]), z["F"][:n][:, None], ("x1", "x2"), ("F",))
+        return Trajectory(z["t"][:n], np.column_stack([z["x1"][:n], z["x2"][:n]]), z["F"][:n][:, None], ("x1", "x2"),
+                          ("F",))
 
 
 def rvm_vs_ard(path: Path, sizes):
@@ -130,15 +140,16 @@ def rvm_vs_ard(path: Path, sizes):
         y = diff.targets(traj.t, traj.states)[:, 1]
         scale = np.linalg.norm(D, axis=0)
         Dn = D / scale  # ARD's prior is not scale-invariant: give it unit-norm columns
-        rvm, t_rvm = timed(lambda: RVM().fit(D, y))
+        rvm, t_rvm = timed(lambda D=D, y=y: RVM().fit(D, y))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ard, t_ard = timed(lambda: ARDRegression(fit_intercept=False).fit(Dn, y))
+            ard, t_ard = timed(lambda Dn=Dn, y=y: ARDRegression(fit_intercept=False).fit(Dn, y))
         s_rvm = sorted(LIB.names[i] for i in rvm.active_)
         s_ard = sorted(LIB.names[i] for i in np.flatnonzero(np.abs(ard.coef_) > 0))
         rows.append([f"{n:.0e}", f"{len(D)} x {D.shape[1]}", f"{1e3 * t_rvm:.1f}", f"{1e3 * t_ard:.1f}",
                      f"{t_ard / t_rvm:.1f}", ", ".join(s_rvm), f"{len(s_ard)} terms"])
-    table("RVM (symsbl, plain fit without the support search) against sklearn ARDRegression on the same weak-form rows of x2'",
+    table("RVM (symsbl, plain fit without the support search) against sklearn ARDRegression on the same weak-form "
+          "rows of x2'",
           ["N samples", "rows x terms", "RVM (ms)", "ARD (ms)", "ARD / RVM", "RVM support", "ARD support"], rows)
 
 
@@ -151,8 +162,7 @@ def dask_vs_single(directory: Path, path: Path, n: int):
     import dask
     from dask.distributed import Client, LocalCluster
 
-    from symsbl import from_delayed, identify_dask
-    from symsbl import fit_stats
+    from symsbl import fit_stats, from_delayed, identify_dask
 
     t0 = time.perf_counter()
     problem = stream_stats(open_npz(path, **NAMES, stop=n), LIB)
@@ -161,7 +171,8 @@ def dask_vs_single(directory: Path, path: Path, n: int):
     cuts = list(range(0, n, 2**20)) + [n]
     parts = [dask.delayed(_load_block)(directory, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
     record = from_delayed(parts, n_columns=4, lengths=np.diff(cuts))
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, Client(cluster):
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster):
         identify_dask(record[:50000], LIB, **NAMES, refine=False)  # warm the workers
         # the map-reduce of the statistics against the single pass: both by equation error
         model, t_dask = timed(lambda: identify_dask(record, LIB, **NAMES, refine=False), repeats=1)
@@ -184,7 +195,8 @@ def batch(path: Path):
             a = k * 2**17
             from symsbl import Trajectory
 
-            records.append(Trajectory(z["t"][a:a + 2**17], np.column_stack([z["x1"][a:a + 2**17], z["x2"][a:a + 2**17]]),
+            records.append(Trajectory(z["t"][a:a + 2**17],
+                                      np.column_stack([z["x1"][a:a + 2**17], z["x2"][a:a + 2**17]]),
                                       z["F"][a:a + 2**17][:, None], ("x1", "x2"), ("F",)))
     loop, t_loop = timed(lambda: [identify(r, LIB) for r in records], repeats=2)
     many, t_many = timed(lambda: identify_many(records, LIB, n_jobs=2), repeats=2)

@@ -84,7 +84,7 @@ def bench_duffing(duration, repeats):
 
     for rtol, atol in ((1e-8, 1e-10), (1e-10, 1e-12)):
         add(f"symsbl cvodes BDF, rtol {rtol:g}",
-            lambda: simulate(s, t, inputs=sig, method="cvodes", rtol=rtol, atol=atol).states[:, 0])
+            lambda rtol=rtol, atol=atol: simulate(s, t, inputs=sig, method="cvodes", rtol=rtol, atol=atol).states[:, 0])
     simulate(s, t, inputs=sig, method="rk4", jit=True)  # compile outside the timing (reported below)
     simulate(s, t, inputs=sig, method="rk4", substeps=2, jit=True)
     add("symsbl RK4 mapaccum+JIT, 1 substep", lambda: simulate(s, t, inputs=sig, method="rk4", jit=True).states[:, 0])
@@ -94,7 +94,8 @@ def bench_duffing(duration, repeats):
                                                                      jit=False).states[:, 0])
     for rtol, atol in ((1e-8, 1e-10), (1e-10, 1e-12)):
         for method in ("RK45", "DOP853", "LSODA"):
-            add(f"scipy {method}, rtol {rtol:g}", lambda: scipy_run(duffing_rhs, t, method, rtol, atol),
+            add(f"scipy {method}, rtol {rtol:g}",
+                lambda method=method, rtol=rtol, atol=atol: scipy_run(duffing_rhs, t, method, rtol, atol),
                 n=repeats if duration <= 1 else 1)
     print_table(f"Duffing, {duration:g} s at {FS} Hz ({t.size} samples); reference DOP853 rtol 1e-12 "
                 f"(RK4 with 4 substeps agrees with it to {rel_err(rk4_check, ref):.1e})",
@@ -110,7 +111,8 @@ def bench_coulomb():
     rows = []
     for sub in (1, 2, 8):
         simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True)
-        x1, sec = timed(lambda: simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True).states[:, 0], 3)
+        x1, sec = timed(lambda sub=sub: simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True).states[:, 0],
+                        3)
         rows.append((f"symsbl RK4 mapaccum+JIT, {sub} substep(s)", sec, rel_err(x1, ref)))
     x1, sec = timed(lambda: simulate(s, t, inputs=sig, method="rk4", jit=False).states[:, 0], 3)
     rows.append(("symsbl RK4 mapaccum, SX virtual machine", sec, rel_err(x1, ref)))

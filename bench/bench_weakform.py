@@ -29,14 +29,12 @@ Run: ``PYTHONPATH=. python bench/bench_weakform.py [--part oscillators|paper] [-
 from __future__ import annotations
 
 import argparse
-
-import numpy as np
-
-from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
 from collections import Counter
 
-from symsbl import (Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols,
-                    time_grid)
+import numpy as np
+from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is on sys.path when run as a script)
+
+from symsbl import Multisine, OdeSystem, Sine, WeakForm, compare_to_truth, identify, paper, simulate, symbols, time_grid
 from symsbl._demo import CASES
 
 FS, DURATION, NOISE = 4096, 3.0, 0.01
@@ -119,7 +117,8 @@ def _paper_cases(seeds):
         for forcing in ("sine", "multisine"):
             for seed in range(seeds):
                 signal = Sine(100.0, 10.0) if forcing == "sine" else Multisine(60.0, 2.0, 30.0, seed=10 + seed)
-                yield name, system, forcing, seed, simulate(system, time_grid(2.0, 32768), inputs=signal), library, 0.004
+                record = simulate(system, time_grid(2.0, 32768), inputs=signal)
+                yield name, system, forcing, seed, record, library, 0.004
     x1, x2, F = symbols("x1 x2 F")
     system = OdeSystem((x1, x2), (F,), (x2, (F - 3.0 * x2 - 2e3 * x1 - 2e7 * x1**3) / 0.5), name="duffing")
     for seed in range(seeds):

@@ -119,7 +119,8 @@ for name, rms in LITERATURE.items():
     print(f"  {name:28s}  {rms:10.3g} ({100 * rms / y_ms.std():.3f} %)    (literature)")
 ms_rms = scores["identified"][0]
 print(f"\nthe identified model is {min(LITERATURE.values()) / ms_rms:.0f} times better than the best published "
-      f"black-box model on the multisine, with {len(mean) - 2} fitted coefficients ({time.perf_counter() - start:.1f} s)")
+      f"black-box model on the multisine, with {len(mean) - 2} fitted coefficients "
+      f"({time.perf_counter() - start:.1f} s)")
 
 assert info["verdict"] == "hidden"
 assert sorted(model.equation("z").names) == sorted(["v", "z*Abs(v)", "v*Abs(z)"])  # the published law, nu = 1

@@ -4,9 +4,9 @@ The system is a lightly damped oscillator with quadratic drag and a hardening sp
 
     0.8 y'' + 2 y' + 3 y'|y'| + 1500 y + 2e7 y^3 = F,
 
-sampled at 1 kHz with 1 % noise on y (8 s to train, 4 s held out). The velocity is never recorded: ``kinematics={"y": "v"}``
-declares y' = v exactly (that equation is fixed, not identified). The regression stage estimates
-v from y; the output-error refinement then fits the simulated y to the measured one, with v
+sampled at 1 kHz with 1 % noise on y (8 s to train, 4 s held out). The velocity is never recorded:
+``kinematics={"y": "v"}`` declares y' = v exactly (that equation is fixed, not identified). The regression stage
+estimates v from y; the output-error refinement then fits the simulated y to the measured one, with v
 simulated from its own unknown initial value. Measured: the equation error misses the viscous
 damping (its dissipation booked as drag) and re-simulates the held-out record with 56 % NRMSE;
 the output error finds every term within 0.08 % and reaches the 1 % noise floor (1.02 %).

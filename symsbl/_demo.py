@@ -10,13 +10,17 @@ held-out record driven by a broadband random-phase multisine it has never seen.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from . import systems
 from ._base.checks import choice
 from ._data.trajectory import Trajectory
 from ._identify import identify
+from ._model import IdentifiedModel
 from ._refine import refine_or_keep
+from ._simulation.ode import OdeSystem
 from ._simulation.signals import Multisine, Sine
 from ._simulation.simulate import simulate, time_grid
 from ._symbolic.terms import paper
@@ -29,7 +33,7 @@ FS = 32768.0
 NOISE = 0.004
 
 #: name -> (constructor, keyword arguments)
-CASES = {
+CASES: dict[str, tuple[Callable[..., OdeSystem], dict[str, Any]]] = {
     "linear": (systems.linear, {}),
     "quadratic damping": (systems.quadratic_damping, {}),
     "Duffing": (systems.duffing, {}),
@@ -44,8 +48,8 @@ class DemoResult:
     ``start_heldout``: the same for the equation-error model the refinement started from)."""
 
     name: str
-    system: object
-    model: object
+    system: OdeSystem
+    model: IdentifiedModel
     truth: TruthComparison
     heldout: Validation
     seconds: float
@@ -151,7 +155,7 @@ def _table(results: list[DemoResult], out) -> None:
         f"{'held-out NRMSE (%)':>20s} {'time':>7s}")
     for r in results:
         cells = [(r.truth.max_error(min_share=0.05), r.truth.max_error(), _worst(r.heldout))]
-        if r.start is not None:
+        if r.start is not None and r.start_heldout is not None:  # set together
             cells.insert(0, (r.start.max_error(min_share=0.05), r.start.max_error(), _worst(r.start_heldout)))
         columns = zip(*[(f"{100 * a:.3f}", f"{100 * b:.3f}", h) for a, b, h in cells])
         big, small, held = (" -> ".join(c) for c in columns)

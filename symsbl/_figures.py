@@ -40,7 +40,8 @@ AFTER = MODEL
 #: The one-line error when matplotlib is missing, with an install hint that works from a clone and from an index.
 MATPLOTLIB_MISSING = expected(
     "figures", "matplotlib to be installed", "ImportError",
-    "pip install matplotlib (or pip install '.[plot]' from a clone of symsbl, pip install 'symsbl[plot]' from an index)",
+    "pip install matplotlib (or pip install '.[plot]' from a clone of symsbl, pip install 'symsbl[plot]' "
+    "from an index)",
     raw=True)
 
 

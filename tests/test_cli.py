@@ -109,7 +109,8 @@ def test_library_file(files, capsys, tmp_path):
         ("flat", ["--states", "x1,x2", "--inputs", "F"], r"state 'x2': expected a column that varies, received a "
                                                          r"constant 3; remove it from the states"),
         ("short", ["--states", "x1,x2", "--inputs", "F"], r"rows: expected more regression rows than candidate terms "
-                                                          r"\(34\), received \d+ rows from 1 record\(s\) with WeakForm"),
+                                                          r"\(34\), received \d+ rows from 1 record\(s\) with "
+                                                          r"WeakForm"),
         (None, ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
          r"data: expected an input exciting at least 8 frequencies \(the skeleton and the hidden law need a "
          r"broadband input\), received 1 excited frequencies; use a multisine"),

@@ -131,9 +131,11 @@ def test_whitened_rows_of_white_noise_are_white():
 
 def test_registry_and_errors():
     assert isinstance(get_differentiator("central"), CentralDifference)
-    with pytest.raises(ValueError, match=exactly("derivative: expected one of ['weak', 'central', 'point', 'savgol'], received 'spline'")):
+    with pytest.raises(ValueError, match=exactly("derivative: expected one of ['weak', 'central', 'point', 'savgol'], "
+                                                 "received 'spline'")):
         get_differentiator("spline")
-    with pytest.raises(DataError, match=exactly('X: expected at least 33 samples for this differentiator, received 10; use a longer record or a shorter window')):
+    with pytest.raises(DataError, match=exactly('X: expected at least 33 samples for this differentiator, received 10; '
+                                                'use a longer record or a shorter window')):
         WeakForm(window=32).targets(np.arange(10.0), np.zeros(10))
     with pytest.raises(ParameterError, match=exactly("SavitzkyGolay.window: expected an odd number greater than "
                                                      "polyorder=3, received 8")):

@@ -260,8 +260,10 @@ def test_cli_discrepancy_reports_a_bad_base(tmp_path, capsys):
 @pytest.mark.parametrize("text, message", [
     ("x1 x2; x2: F", r"expected 'state: term, term'"),
     ("x1: x2; x3: F", exactly("--base: expected equations of the states ['x1', 'x2'], received 'x3'")),
-    ("x1: x2; x2: F, y", exactly("--base (state 'x2'): expected a variable among ['F', 'x1', 'x2'] or a constant (pi, E) in 'y', received 'y' at position 0")),
-    ("x1: x2; x2: F, x2 +* 1", exactly("--base (state 'x2'): expected a number, a variable name, a function call or '(' in 'x2 +* 1', received '*' at position 4")),
+    ("x1: x2; x2: F, y", exactly("--base (state 'x2'): expected a variable among ['F', 'x1', 'x2'] or a constant (pi, "
+                                 "E) in 'y', received 'y' at position 0")),
+    ("x1: x2; x2: F, x2 +* 1", exactly("--base (state 'x2'): expected a number, a variable name, a function call or "
+                                       "'(' in 'x2 +* 1', received '*' at position 4")),
     ("x1: x2", exactly("--base: expected terms for every state, received none for ['x2']")),
     ("x1: x2; x1: x2; x2: F", exactly("--base: expected one 'state: terms' part per state, received two for 'x1'")),
     ("x1: x2; x2:", r"expected 'state: term, term'"),
@@ -293,13 +295,17 @@ def test_discrepancy_argument_errors():
     with pytest.raises(DataError, match=exactly('data: expected a Trajectory, received ndarray')):
         discrepancy(train.states, BASE)
     other = Trajectory(held.t, held.states, held.inputs, ("y1", "y2"), ("F",))
-    with pytest.raises(DataError, match=exactly("heldout: expected the training record's states ['x1', 'x2'] and inputs ['F'], received ['y1', 'y2'] and ['F']")):
+    with pytest.raises(DataError, match=exactly("heldout: expected the training record's states ['x1', 'x2'] and "
+                                                "inputs ['F'], received ['y1', 'y2'] and ['F']")):
         discrepancy(train, BASE, heldout=other)
-    with pytest.raises(DataError, match=exactly("velocity: expected a base equation 'x: v' naming the velocity v, another state, received the base {'x1': ['x2', 'x1'], 'x2': ['F', 'x1', 'x2']}; pass velocity= (and displacement=) explicitly")):
+    with pytest.raises(DataError, match=exactly("velocity: expected a base equation 'x: v' naming the velocity v, "
+                                                "another state, received the base {'x1': ['x2', 'x1'], 'x2': ['F', "
+                                                "'x1', 'x2']}; pass velocity= (and displacement=) explicitly")):
         discrepancy(train, "x1: x2, x1; x2: F, x1, x2")
     with pytest.raises(DataError, match=exactly("velocity: expected one of the states ['x1', 'x2'], received 'v'")):
         discrepancy(train, BASE, velocity="v")
-    with pytest.raises(LibraryError, match=exactly("base: state 'x2': expected distinct terms (up to a constant factor), received ['F', 'x1', '2*x1']; list each term once")):
+    with pytest.raises(LibraryError, match=exactly("base: state 'x2': expected distinct terms (up to a constant "
+                                                   "factor), received ['F', 'x1', '2*x1']; list each term once")):
         discrepancy(train, "x1: x2; x2: F, x1, 2*x1")
     with pytest.raises(LibraryError, match=exactly("base: expected terms for exactly the states ['x1', 'x2'], "
                                                    "received ['x1']")):
@@ -308,19 +314,25 @@ def test_discrepancy_argument_errors():
 
 def test_catalogue_errors_and_lookup():
     assert get_effect("coulomb_friction").sign == -1
-    with pytest.raises(LibraryError, match=exactly("effect: expected one of ['coulomb_friction', 'quadratic_damping', 'velocity_squared', 'cubic_damping', 'cubic_stiffness', 'quadratic_stiffness', 'clearance'], received 'coulomb'; did you mean 'coulomb_friction'?")):
+    with pytest.raises(LibraryError, match=exactly("effect: expected one of ['coulomb_friction', 'quadratic_damping', "
+                                                   "'velocity_squared', 'cubic_damping', 'cubic_stiffness', "
+                                                   "'quadratic_stiffness', 'clearance'], received 'coulomb'; did you "
+                                                   "mean 'coulomb_friction'?")):
         get_effect("coulomb")
-    with pytest.raises(LibraryError, match=exactly("effects: expected distinct effect names, received ['cubic_stiffness'] more than once; rename the new effect")):
+    with pytest.raises(LibraryError, match=exactly("effects: expected distinct effect names, received "
+                                                   "['cubic_stiffness'] more than once; rename the new effect")):
         catalogue([Effect("cubic_stiffness", "again", "stiffness", lambda x, v: x**3)])
     with pytest.raises(LibraryError, match=exactly('extra: expected Effect instances, received str')):
         catalogue(["x**3"])
     assert "clearance" not in [e.name for e in catalogue(exclude=["clearance"])]
     x, v = ca.SX.sym("x"), ca.SX.sym("v")
-    with pytest.raises(LibraryError, match=exactly("effect 'bad': terms: expected CasADi SX expressions of the displacement and velocity symbols, received str")):
+    with pytest.raises(LibraryError, match=exactly("effect 'bad': terms: expected CasADi SX expressions of the "
+                                                   "displacement and velocity symbols, received str")):
         Effect("bad", "", "", lambda x, v: "x").variants(x, v)
     with pytest.raises(LibraryError, match=exactly("effect 'bad': sign: expected -1 or 0, received 1")):
         Effect("bad", "", "", lambda x, v: x, sign=1).variants(x, v)
-    with pytest.raises(DataError, match=exactly('cutoff: expected a frequency in (0, 500) Hz (the Nyquist frequency), received 600.0')):
+    with pytest.raises(DataError, match=exactly('cutoff: expected a frequency in (0, 500) Hz (the Nyquist frequency), '
+                                                'received 600.0')):
         position_record(np.arange(10) * 1e-3, np.zeros(10), np.zeros(10), cutoff=600.0)
     assert len(CATALOGUE) >= 7
 

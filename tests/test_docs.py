@@ -102,7 +102,8 @@ def test_the_cli_reference_names_every_option_of_every_command():
 
 def test_the_readme_is_a_short_front_door_that_links_the_site():
     readme = (ROOT / "README.md").read_text()
-    assert readme.count("\n") <= 250, f"README.md has {readme.count(chr(10))} lines (at most 250: move sections to docs/)"
+    assert readme.count("\n") <= 250, (f"README.md has {readme.count(chr(10))} lines (at most 250: move sections to "
+                                       "docs/)")
     assert "](docs/index.md)" in readme, "README.md does not link the documentation site (docs/index.md)"
     for section in ("## Install", "## Two commands", "## Quickstart"):
         assert section in readme, section

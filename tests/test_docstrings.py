@@ -17,8 +17,8 @@ MODULES = sorted(m.name.removeprefix("symsbl.") for m in pkgutil.walk_packages(s
 #: Modules whose examples need an optional extra.
 EXTRAS = {"plots": "matplotlib", "_scale.dask": "dask", "_discrepancy.figures": "matplotlib", "_figures": "matplotlib"}
 #: Result containers and errors: users receive them, they do not call them.
-RESULTS = {"ChunkedRecord", "DemoResult", "DiscrepancyReport", "Variant", "DiscrepancyStep", "Disagreement", "EffectScore", "Equation",
-           "RegressionStats", "TermEstimate", "TruthComparison", "Validation"}
+RESULTS = {"ChunkedRecord", "DemoResult", "DiscrepancyReport", "Variant", "DiscrepancyStep", "Disagreement",
+           "EffectScore", "Equation", "RegressionStats", "TermEstimate", "TruthComparison", "Validation"}
 
 
 @pytest.mark.parametrize("name", MODULES)

@@ -134,7 +134,8 @@ def test_library_errors():
 def test_data_shape_errors_name_the_variables():
     ev = Evaluator(paper((X1, X2), (F,), degree=1), chunk_size=8, jit=False)
     with pytest.raises(
-        LibraryError, match=r"Z: expected shape \(n_samples, 3\) with columns \['x1', 'x2', 'F'\], received shape \(10, 2\)"
+        LibraryError, match=r"Z: expected shape \(n_samples, 3\) with columns \['x1', 'x2', 'F'\], received shape "
+                            r"\(10, 2\)"
     ):
         ev.evaluate(np.zeros((10, 2)))
     with pytest.raises(LibraryError, match=r"received shape \(3,\); pass one column per variable"):
@@ -143,7 +144,8 @@ def test_data_shape_errors_name_the_variables():
         list(ev.iter_chunks(np.zeros((2, 2, 3))))
     with pytest.raises(LibraryError, match=r"Z: expected a numeric array of shape \(n_samples, 3\)"):
         ev.evaluate([["a", "b", "c"]])
-    with pytest.raises(LibraryError, match=r"out: expected a writeable C-contiguous float64 array of shape \(4, 14\), received float64 array of shape \(5, 4\)"):
+    with pytest.raises(LibraryError, match=r"out: expected a writeable C-contiguous float64 array of shape \(4, 14\), "
+                                           r"received float64 array of shape \(5, 4\)"):
         ev.evaluate(np.zeros((4, 3)), out=np.zeros((5, 4)))
     with pytest.raises(LibraryError, match=r"out: .* received float32 array of shape \(4, 14\)"):
         ev.evaluate(np.zeros((4, 3)), out=np.zeros((4, 14), np.float32))

@@ -74,8 +74,8 @@ def test_a_short_first_request_compiles_nothing_and_the_second_compiles(fresh):
 
 def test_a_damaged_library_is_built_again(fresh, monkeypatch):
     # compiled by another process (a library this process has loaded is never read again from its path)
-    script = ("import sys; sys.path.insert(0, %r); import test_jit, symsbl._base.jit as j, symsbl; "
-              "j.jit_wrap(test_jit.mapped(4), 'f_chunk', True, symsbl.SimulationError)" % os.path.dirname(__file__))
+    script = (f"import sys; sys.path.insert(0, {os.path.dirname(__file__)!r}); import test_jit, symsbl._base.jit as j, "
+              "symsbl; j.jit_wrap(test_jit.mapped(4), 'f_chunk', True, symsbl.SimulationError)")
     subprocess.run([sys.executable, "-c", script], check=True, env=dict(os.environ))
     (library,) = fresh.iterdir()
     damaged = fresh / "damaged"

@@ -369,7 +369,8 @@ def test_an_edited_rhs_is_reported_not_ignored(files):
     eq = next(e for e in doc["equations"] if e["lhs"] == "x2")
     eq["rhs"] = eq["rhs"].replace("F", "2*F", 1)
     with pytest.raises(symsbl.DataError, match=r"^model JSON\.equations\[1\]\.rhs: expected the sum of the equation's "
-                                               r"terms, received .*; edit 'terms' \(the source of truth\) and delete or "
+                                               r"terms, received .*; edit 'terms' \(the source of truth\) and delete "
+                                               r"or "
                                                r"regenerate 'rhs'$"):
         symsbl.IdentifiedModel.from_json(doc)
     del eq["rhs"]  # rhs is a redundant copy: without it the model reads from its terms
@@ -470,7 +471,8 @@ def test_lab_csv_dialects_are_read(tmp_path):
     np.testing.assert_array_equal(record.states, x)
     np.testing.assert_array_equal(record.t, t)
     tabbed = tmp_path / "tab.csv"
-    tabbed.write_text("t\tx1\tx2\n" + "\n".join("\t".join(repr(float(v)) for v in row) for row in np.column_stack([t, x])))
+    tabbed.write_text("t\tx1\tx2\n" + "\n".join("\t".join(repr(float(v)) for v in row)
+                                                for row in np.column_stack([t, x])))
     np.testing.assert_array_equal(symsbl.read_trajectory(tabbed, states=["x1", "x2"]).states, x)
 
 
@@ -536,7 +538,7 @@ def test_ctrl_c_that_a_library_swallows_still_ends_the_command_as_interrupted(sw
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1.0)  # the handler runs here
         except KeyboardInterrupt:
-            warnings.warn("a fallback after the swallowed interrupt", UserWarning)
+            warnings.warn("a fallback after the swallowed interrupt", UserWarning, stacklevel=1)
             if swallow == "raises a symsbl error":
                 raise symsbl.SimulationError("simulation: expected a finite solution, received a failure") from None
             if swallow == "raises another error":

@@ -70,8 +70,10 @@ def test_casadi_system_reproduces_the_identified_equations(duffing):
     system = model.to_system()
     rhs = system.evaluate_rhs(data.states[:50], data.inputs[:50])
     for k, eq in enumerate(model.equations):
-        expected = sum(t.coef * np.array([float(ca.Function("f", list(model.states) + list(model.inputs), [t.expr])(*row))
-                                          for row in np.hstack([data.states[:50], data.inputs[:50]])]) for t in eq.terms)
+        expected = sum(t.coef * np.array([float(ca.Function("f", list(model.states) + list(model.inputs),
+                                                            [t.expr])(*row))
+                                          for row in np.hstack([data.states[:50], data.inputs[:50]])])
+                       for t in eq.terms)
         np.testing.assert_allclose(rhs[:, k], expected, rtol=1e-12, atol=1e-9)
 
 
@@ -101,7 +103,8 @@ def test_load_errors(tmp_path):
         IdentifiedModel.load(bad)
     with pytest.raises(DataError, match=r"missing\.json': expected an existing JSON file, received no such file$"):
         IdentifiedModel.load(tmp_path / "missing.json")
-    with pytest.raises(DataError, match=exactly("model JSON: expected a field 'equations', received fields ['states']")):
+    with pytest.raises(DataError,
+                       match=exactly("model JSON: expected a field 'equations', received fields ['states']")):
         IdentifiedModel.from_json({"states": ["x"]})
     doc = {"states": ["x"], "inputs": [], "equations": [{"lhs": "x", "terms": [{"term": "y**2", "coef": 1.0}]}]}
     with pytest.raises(DataError, match=exactly(
@@ -156,10 +159,12 @@ def test_divergence_is_reported_not_raised():
 def test_validation_errors(duffing):
     _, data, model = duffing
     other = Trajectory(t=data.t, states=data.states, inputs=data.inputs, state_names=("y1", "y2"), input_names=("F",))
-    with pytest.raises(DataError, match=exactly("data: expected the model's states ['x1', 'x2'], received states ['y1', 'y2'] (missing ['x1', 'x2'])")):
+    with pytest.raises(DataError, match=exactly("data: expected the model's states ['x1', 'x2'], received states "
+                                                "['y1', 'y2'] (missing ['x1', 'x2'])")):
         validate_model(model, other)
     no_input = Trajectory(t=data.t, states=data.states, state_names=("x1", "x2"))
-    with pytest.raises(DataError, match=exactly("data: expected the model's inputs ['F'], received inputs [] (missing ['F'])")):
+    with pytest.raises(DataError, match=exactly("data: expected the model's inputs ['F'], received inputs [] (missing "
+                                                "['F'])")):
         validate_model(model, no_input)
 
 

@@ -54,7 +54,7 @@ TRUTH = np.array([1.0, -400.0, -4.0, -4e6, 1.0])  # m = 1, k = 400 (3.2 Hz), c =
 FS, SECONDS = 400, 4.0
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _duffing_clean():
     t = time_grid(SECONDS, FS)
     return t, _rk4(_duffing_rhs, [0.0, 0.0], t, TRUTH, substeps=8)[:, 0, :]
@@ -166,7 +166,8 @@ def test_laplace_evidence_matches_quadrature():
     f = log_like + log_prior
     cell = (grid[0][1] - grid[0][0]) * (grid[1][1] - grid[1][0])
     brute = f.max() + np.log(np.exp(f - f.max()).sum() * cell)
-    assert abs(model.metadata["refine"]["log_evidence"] - brute) < 0.5, (model.metadata["refine"]["log_evidence"], brute)
+    assert abs(model.metadata["refine"]["log_evidence"] - brute) < 0.5, (model.metadata["refine"]["log_evidence"],
+                                                                          brute)
 
 
 def test_model_reduction_scores_a_removal_as_a_refit_does():

@@ -14,12 +14,12 @@ from hypothesis import strategies as st
 import symsbl
 from symsbl import SelectionRule
 from symsbl._cli import main
-from symsbl._simulation.ode import OdeSystem
 from symsbl._refine.candidates import prior
 from symsbl._refine.engine import Engine, Settings
-from symsbl._refine.result import to_model
 from symsbl._refine.laplace import reduce_model
+from symsbl._refine.result import to_model
 from symsbl._refine.selection import _every_term_clears
+from symsbl._simulation.ode import OdeSystem
 
 X, V, F = symsbl.symbols("x v F")
 #: Look-alikes of a damping force at velocities below 1 m/s.

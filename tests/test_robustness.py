@@ -9,8 +9,8 @@ Fuentes et al. (2019) do not cover, each checked against the true equations.
 
 Noise study (2 s at 32768 Hz, ``Sine(100, 10)``, Eq. 21 dictionary to degree 6, degree 4 for
 Bouc-Wen, equation error (``refine=False``: the noise study and the cubic-plus-Coulomb study measure
-the regression stage; the refinement is tested in ``test_refine.py``), noise seeds 0-4): exact support in 5/5 fits on every system at 0.4 %,
-1 % and 2 %; largest relative error of the terms carrying >= 5 % of their equation's variance
+the regression stage; the refinement is tested in ``test_refine.py``), noise seeds 0-4): exact support in 5/5 fits
+on every system at 0.4 %, 1 % and 2 %; largest relative error of the terms carrying >= 5 % of their equation's variance
 0.23 %, 0.59 % and 1.8 %; of all terms (Coulomb's ``sign(x2)``, 0.01 % of the variance, is the
 worst) 3.3 %, 13 % and 24 %. Recovery starts to fail at 2.5 % (20/25 exact: Coulomb's sign(x2) is
 dropped in 4 of 5 fits, quadratic damping's x2**2 becomes x2**2*|x2| once), is mostly lost at 3 %
@@ -23,7 +23,7 @@ is 10-20 nats below the truth's: the support-search local optimum of
 :func:`test_cubic_stiffness_with_strong_coulomb_friction_under_a_sine`.
 """
 
-from functools import lru_cache
+from functools import cache
 
 import casadi as ca
 import numpy as np
@@ -79,10 +79,11 @@ def pendulum(g=9.81, length=1.0, c=0.5) -> OdeSystem:
     )
 
 
-@lru_cache(maxsize=None)
+@cache
 def _pendulum_record(rms: float, seed: int):
     # 20 s at 1 kHz (the natural frequency is 0.5 Hz); a multisine of period 20 s over 0.1-2 Hz.
-    return simulate(pendulum(), time_grid(20.0, 1000.0), inputs=Multisine(rms=rms, f_min=0.1, f_max=2.0, seed=seed, period=20.0))
+    return simulate(pendulum(), time_grid(20.0, 1000.0),
+                    inputs=Multisine(rms=rms, f_min=0.1, f_max=2.0, seed=seed, period=20.0))
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -137,7 +138,7 @@ def duffing_coulomb(kc: float, m=1.0, c=20.0, k=1e4, k3=1e9) -> OdeSystem:
     )
 
 
-@lru_cache(maxsize=None)
+@cache
 def _duffing_coulomb_record(kc: float, forcing: str, seed: int):
     signal = Sine(100.0, 10.0) if forcing == "sine" else Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=10 + seed)
     return simulate(duffing_coulomb(kc), time_grid(1.0, FS), inputs=signal)
@@ -238,7 +239,7 @@ def test_lorenz_with_polynomial_library():
 # --- noise beyond 0.4 % on the paper's five systems ---------------------------------------------
 
 
-@lru_cache(maxsize=None)
+@cache
 def _paper_record(name: str, duration: float = 2.0):
     build, kwargs = CASES[name]
     system = build(**kwargs)
@@ -283,7 +284,8 @@ def test_weak_window_is_set_by_the_signal_not_the_noise():
 
 def _linear_at_five_percent(derivative):
     system, clean = _paper_record("linear")
-    model = identify(clean.with_noise(0.05, seed=0), paper(system.states, system.inputs, degree=6), derivative=derivative)
+    model = identify(clean.with_noise(0.05, seed=0), paper(system.states, system.inputs, degree=6),
+                     derivative=derivative)
     return compare_to_truth(model, system, clean), model
 
 

@@ -330,14 +330,22 @@ def test_options_free_fixed_noise_floor_and_verbose(capsys):
 @pytest.mark.parametrize(
     "X, y, match",
     [
-        (np.ones(10), np.ones(10), exactly('X: expected a 2-D array, received shape (10,); reshape it (e.g. X.reshape(-1, 1) for one column)')),
-        (np.ones((10, 2)), np.ones((10, 2)), exactly('y: expected a 1-D array, received shape (10, 2); reshape it (e.g. y.reshape(-1, 1) for one column)')),
+        (np.ones(10), np.ones(10), exactly('X: expected a 2-D array, received shape (10,); reshape it (e.g. '
+                                           'X.reshape(-1, 1) for one column)')),
+        (np.ones((10, 2)), np.ones((10, 2)), exactly('y: expected a 1-D array, received shape (10, 2); reshape it '
+                                                     '(e.g. y.reshape(-1, 1) for one column)')),
         (np.ones((10, 2)), np.ones(9), exactly('y: expected as many rows as X (10), received 9 rows')),
-        (np.where(np.eye(10, 2) > 0, np.nan, 1.0), np.ones(10), exactly('X: expected finite values, received a non-finite value at index (0, 0); remove or impute NaN/inf rows first')),
-        (np.ones((10, 2)), np.r_[np.ones(9), np.inf], exactly('y: expected finite values, received a non-finite value at index (9, 0); remove or impute NaN/inf rows first')),
-        (np.ones((1, 2)), np.ones(1), exactly('rows: expected more regression rows than candidate terms (2), received 1 rows from X; use longer records, fewer candidate terms (a lower degree) or a derivative strategy with more rows')),
+        (np.where(np.eye(10, 2) > 0, np.nan, 1.0), np.ones(10), exactly('X: expected finite values, received a '
+                                                                        'non-finite value at index (0, 0); remove or '
+                                                                        'impute NaN/inf rows first')),
+        (np.ones((10, 2)), np.r_[np.ones(9), np.inf], exactly('y: expected finite values, received a non-finite value '
+                                                              'at index (9, 0); remove or impute NaN/inf rows first')),
+        (np.ones((1, 2)), np.ones(1), exactly('rows: expected more regression rows than candidate terms (2), received '
+                                              '1 rows from X; use longer records, fewer candidate terms (a lower '
+                                              'degree) or a derivative strategy with more rows')),
         (np.ones((10, 0)), np.ones(10), exactly('stats: expected at least one dictionary column, received none')),
-        (np.ones((10, 2)), np.zeros(10), exactly('y: expected a target that is not identically zero, received all zeros; there is nothing to fit')),
+        (np.ones((10, 2)), np.zeros(10), exactly('y: expected a target that is not identically zero, received all '
+                                                 'zeros; there is nothing to fit')),
     ],
 )
 def test_fit_rejects_bad_data(X, y, match):
@@ -349,7 +357,8 @@ def test_fit_rejects_bad_data(X, y, match):
     "params, match",
     [
         ({"prune_nats": "aic"}, exactly("prune_nats: expected one of 'bic', 'ebic', received 'aic'")),
-        ({"prune_nats": -1.0}, exactly("prune_nats: expected a finite number >= 0.0, None, 'bic', 'ebic', received -1.0")),
+        ({"prune_nats": -1.0}, exactly("prune_nats: expected a finite number >= 0.0, None, 'bic', 'ebic', received "
+                                       "-1.0")),
         ({"noise_var": 0.0}, exactly('noise_var: expected a finite number > 0.0, None, received 0.0')),
         ({"noise_floor": np.nan}, exactly('noise_floor: expected a finite number >= 0.0, received nan')),
         ({"tol": -1}, exactly('tol: expected a finite number > 0.0, received -1')),
@@ -377,7 +386,8 @@ def test_other_user_errors():
         RVM().predict(X)
     with pytest.raises(DataError, match=exactly("X: expected 10 columns (as in fit), received 3")):
         RVM().fit(X, y).predict(X[:, :3])
-    with pytest.raises(DataError, match=exactly("chunks: expected at least one (D_chunk, Y_chunk) pair, received none")):
+    with pytest.raises(DataError,
+                       match=exactly("chunks: expected at least one (D_chunk, Y_chunk) pair, received none")):
         GramStats.from_chunks([])
     with pytest.raises(ParameterError, match=exactly("factor: expected a finite number > 0.0, received -1")):
         stats.scaled(-1)

@@ -122,7 +122,12 @@ def test_coulomb_rk4_converges_first_order_and_auto_avoids_cvodes():
 
 def test_coulomb_stalls_cvodes_which_reports_it():
     t = time_grid(0.1, 4096)
-    with pytest.raises(SimulationError, match=exactly('simulation of \'coulomb\' with cvodes: expected a solution that stays finite, received divergence at t = 0 s (cvodes failed: CVode returned "CV_TOO_MUCH_WORK". Consult CVODES documentation.); fewer than 2 samples were computed, so there is nothing to return; the right-hand side is discontinuous: use method=\'rk4\' (or \'auto\')')):
+    with pytest.raises(SimulationError, match=exactly('simulation of \'coulomb\' with cvodes: expected a solution that '
+                                                      'stays finite, received divergence at t = 0 s (cvodes failed: '
+                                                      'CVode returned "CV_TOO_MUCH_WORK". Consult CVODES '
+                                                      'documentation.); fewer than 2 samples were computed, so there '
+                                                      'is nothing to return; the right-hand side is discontinuous: use '
+                                                      'method=\'rk4\' (or \'auto\')')):
         simulate(systems.coulomb(), t, inputs=Sine(), method="cvodes")
 
 
@@ -175,7 +180,8 @@ def blow_up():
 @pytest.mark.parametrize("method", ["cvodes", "rk4"])
 def test_divergence_raises_or_truncates(method):
     t = time_grid(2.0, 1000)
-    with pytest.raises(SimulationError, match=rf"^simulation of 'blow_up' with {method}: expected a solution that stays "
+    with pytest.raises(SimulationError, match=rf"^simulation of 'blow_up' with {method}: expected a solution that "
+                                              rf"stays "
                                               r"finite, received divergence at t = (1\.\d+|0\.99\d+) s \(.+\); pass "
                                               r"on_divergence='truncate' to get the trajectory up to that point$"):
         simulate(blow_up(), t, x0=[1.0], method=method, jit=False)
@@ -236,19 +242,25 @@ def test_jit_matches_virtual_machine():
 
 def test_argument_errors():
     s, t = systems.linear(), time_grid(0.01, 1000)
-    with pytest.raises(SimulationError, match=exactly("method: expected one of 'auto', 'cvodes', 'rk4', received 'euler'")):
+    with pytest.raises(SimulationError, match=exactly("method: expected one of 'auto', 'cvodes', 'rk4', received "
+                                                      "'euler'")):
         simulate(s, t, method="euler")
-    with pytest.raises(SimulationError, match=exactly("on_divergence: expected one of 'raise', 'truncate', received 'x'")):
+    with pytest.raises(SimulationError, match=exactly("on_divergence: expected one of 'raise', 'truncate', received "
+                                                      "'x'")):
         simulate(s, t, on_divergence="x")
     with pytest.raises(SimulationError, match=exactly("jit: expected one of 'auto', True, False, received 'yes'")):
         simulate(s, t, jit="yes")
-    with pytest.raises(SimulationError, match=exactly("x0: expected 2 finite values (states ['x1', 'x2']), received array([1.])")):
+    with pytest.raises(SimulationError, match=exactly("x0: expected 2 finite values (states ['x1', 'x2']), received "
+                                                      "array([1.])")):
         simulate(s, t, x0=[1.0])
-    with pytest.raises(SimulationError, match=exactly("inputs: expected one signal per input of 'linear' ['F'], received signals for 2; use FreeDecay() for a zero input")):
+    with pytest.raises(SimulationError, match=exactly("inputs: expected one signal per input of 'linear' ['F'], "
+                                                      "received signals for 2; use FreeDecay() for a zero input")):
         simulate(s, t, inputs=[Sine(), Sine()])
-    with pytest.raises(SimulationError, match=exactly('inputs: expected an array sampled on t: shape (11,) or (11, 1), received shape (5,)')):
+    with pytest.raises(SimulationError, match=exactly('inputs: expected an array sampled on t: shape (11,) or (11, 1), '
+                                                      'received shape (5,)')):
         simulate(s, t, inputs=np.zeros(5))
-    with pytest.raises(SimulationError, match=exactly("t: expected a grid inside the sampled input's span [0.0, 0.005], "
+    with pytest.raises(SimulationError, match=exactly("t: expected a grid inside the sampled input's span [0.0, "
+                                                      "0.005], "
                                                       "received [0.0, 0.01]; shorten t or supply samples covering it")):
         simulate(s, t, inputs=Sampled([0.0, 0.005], [1.0, 2.0]))
     with pytest.raises(SimulationError, match=exactly('substeps: expected an integer >= 1, received 0')):
@@ -257,7 +269,10 @@ def test_argument_errors():
         simulate(s, t, inputs=[Sine(), "F"])
     with pytest.raises(SimulationError, match=exactly('system: expected an OdeSystem, received str')):
         simulate("duffing", t)
-    with pytest.raises(SimulationError, match=exactly('duration * fs: expected at least 1 sample interval, received 0.0 s at 1000 Hz')):
+    with pytest.raises(SimulationError, match=exactly('duration * fs: expected at least 1 sample interval, received '
+                                                      '0.0 s at 1000 Hz')):
         time_grid(0.0, 1000)
-    with pytest.raises(DataError, match=exactly('time: expected strictly increasing values, received t = 0.009 at row 1 after t = 0.01; sort the rows or pass --fs/fs for a rounded time column')):
+    with pytest.raises(DataError, match=exactly('time: expected strictly increasing values, received t = 0.009 at row '
+                                                '1 after t = 0.01; sort the rows or pass --fs/fs for a rounded time '
+                                                'column')):
         simulate(s, t[::-1])

@@ -22,7 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "symsbl"
 DOCS = ROOT / "docs"
 PUBLIC_MODULES = {"systems", "plots"}
-SUBMODULES = sorted(m.name for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.") if not m.name.endswith("__main__"))
+SUBMODULES = sorted(m.name for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.")
+                    if not m.name.endswith("__main__"))
 
 
 def _import_everything():
@@ -122,7 +123,8 @@ def _function_bodies(tree):
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             first = node.body[0]
-            doc = isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str)
+            doc = (isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant)
+                   and isinstance(first.value.value, str))
             start = first.end_lineno + 1 if doc and len(node.body) > 1 else first.lineno
             yield node.name, node.end_lineno - start + 1
 

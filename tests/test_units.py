@@ -79,7 +79,8 @@ def test_equation_error_is_the_same_in_any_units(record, reference, sx, sv, sf, 
 
 
 @pytest.mark.parametrize("sx, sv, sf, st_", [(1e9, 1e9, 1e3, 1.0), (1e-30, 1e30, 1e-30, 1e30),
-                                             (1e30, 1e-30, 1e30, 1e-30), (1.0, 1.0, 1.0, 1e-30), (1e-10, 1e10, 1.0, 1.0)],
+                                             (1e30, 1e-30, 1e30, 1e-30), (1.0, 1.0, 1.0, 1e-30),
+                                             (1e-10, 1e10, 1.0, 1.0)],
                          ids=["nm and mN", "small x, large v, small F, long time", "the reverse", "short time",
                               "x and v in inconsistent units"])
 def test_output_error_is_the_same_in_any_units(record, reference, sx, sv, sf, st_):

@@ -108,9 +108,9 @@ def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: l
     full = n - n % chunk
     for start in range(0, full, chunk):
         for i, a in enumerate(inputs):
-            buf.set_arg(i, memoryview(a[start:start + chunk]))
+            buf.set_arg(i, memoryview(a[start:start + chunk]))  # type: ignore[call-arg, arg-type]
         for j, o in enumerate(outputs):
-            buf.set_res(j, memoryview(o[start:start + chunk]))
+            buf.set_res(j, memoryview(o[start:start + chunk]))  # type: ignore[call-arg, arg-type]
         call()
     if full == n:
         return
@@ -123,9 +123,9 @@ def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: l
         pads.append(pad)
     scratch = [np.empty((chunk, o.shape[1])) for o in outputs]
     for i, p in enumerate(pads):
-        buf.set_arg(i, memoryview(p))
+        buf.set_arg(i, memoryview(p))  # type: ignore[call-arg, arg-type]
     for j, s in enumerate(scratch):
-        buf.set_res(j, memoryview(s))
+        buf.set_res(j, memoryview(s))  # type: ignore[call-arg, arg-type]
     call()
     for o, s in zip(outputs, scratch):
         o[full:] = s[:rest]

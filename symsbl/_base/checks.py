@@ -13,7 +13,7 @@ from .errors import DataError, ParameterError, SymsblError, expected
 __all__ = ["integer", "number", "flag", "choice", "enough_rows", "Constraint", "check_params"]
 
 
-def integer(name: str, value, *, low: int | None = None, high: int | None = None,
+def integer(name: str, value, *, low: float | None = None, high: float | None = None,
             error: type[SymsblError] = ParameterError) -> int:
     """``value`` as an int in ``[low, high]``; bools and floats are refused.
 
@@ -99,24 +99,24 @@ class Constraint:
     options: tuple = ()
 
     @classmethod
-    def number(cls, *, low=None, high=None, strict=False, none=False, options=()) -> "Constraint":
+    def number(cls, *, low=None, high=None, strict=False, none=False, options=()) -> Constraint:
         return cls("number", low, high, strict, none, tuple(options))
 
     @classmethod
-    def integer(cls, *, low=None, high=None, options=()) -> "Constraint":
+    def integer(cls, *, low=None, high=None, options=()) -> Constraint:
         return cls("integer", low, high, options=tuple(options))
 
     @classmethod
-    def choice(cls, options) -> "Constraint":
+    def choice(cls, options) -> Constraint:
         """One of ``options`` (strings, or other values compared by identity, such as True and False)."""
         return cls("choice", options=tuple(options))
 
     @classmethod
-    def boolean(cls) -> "Constraint":
+    def boolean(cls) -> Constraint:
         return cls("boolean")
 
     @classmethod
-    def indices(cls) -> "Constraint":
+    def indices(cls) -> Constraint:
         return cls("indices")
 
     def check(self, name: str, value, n_columns: int = 0, error: type[SymsblError] = ParameterError):
@@ -144,7 +144,8 @@ class Constraint:
                 if not self.options:
                     raise
                 extra = "".join(f" or {o!r}" for o in self.options)
-                raise ParameterError(expected(name, "an integer" + _range(self.low, self.high) + extra, value)) from None
+                raise ParameterError(expected(name, "an integer" + _range(self.low, self.high) + extra,
+                                              value)) from None
         if self.kind == "indices":
             return _indices(name, value, n_columns)
         try:

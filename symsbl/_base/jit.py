@@ -114,7 +114,8 @@ def _fingerprint(cc: str) -> str:
         cpu = "".join(sorted(set(lines)))
     except OSError:
         cpu = platform.processor()
-    return "\n".join([cc, version, " ".join(_FLAGS), platform.machine(), cpu, ca.__version__])
+    casadi_version = ca.__version__  # type: ignore[attr-defined]  # absent from CasADi's stubs
+    return "\n".join([cc, version, " ".join(_FLAGS), platform.machine(), cpu, casadi_version])
 
 
 def jit_lookup(key) -> ca.Function | None:

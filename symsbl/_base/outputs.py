@@ -249,9 +249,8 @@ def _write_through(path: Path, write: Callable[[object], None], binary: bool) ->
     opened for appending (as ``>>``)."""
     buffer = io.BytesIO() if binary else io.StringIO()
     write(buffer)
-    data = buffer.getvalue()
-    if not binary:
-        data = data.encode()
+    content = buffer.getvalue()
+    data = content.encode() if isinstance(content, str) else content
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

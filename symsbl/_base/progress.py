@@ -32,7 +32,7 @@ import contextlib
 import sys
 import threading
 import time
-from typing import Iterator
+from collections.abc import Iterator
 
 from .errors import ParameterError, expected
 
@@ -136,7 +136,7 @@ class Progress:
         self._active = False
         self._shown = False
 
-    def __enter__(self) -> "Progress":
+    def __enter__(self) -> Progress:
         stream = sys.stderr if self._stream is None else self._stream
         self._stream = stream
         outer = getattr(_OPEN, "depth", 0)

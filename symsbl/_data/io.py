@@ -16,11 +16,12 @@ import csv
 import io
 import math
 import os
-import stat
 import re
+import stat
 import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -156,7 +157,7 @@ def _read_npz(path: Path, raw: bytes | None) -> dict[str, np.ndarray]:
     if not zipfile.is_zipfile(source):
         raise DataError(expected(str(path), "a readable .npz file (a zip archive written by numpy.savez)",
                                  "a file that is not a zip archive", raw=True))
-    if raw is not None:
+    if isinstance(source, io.BytesIO):
         source.seek(0)
     try:
         with np.load(source, allow_pickle=False) as z:
@@ -190,7 +191,7 @@ def _write_csv(columns: Mapping[str, np.ndarray], fh) -> None:
 
 
 def _write_npz(columns: Mapping[str, np.ndarray], fh) -> None:
-    np.savez(fh, **columns)
+    np.savez(fh, **columns)  # type: ignore[arg-type]
 
 
 def _write_mat(columns: Mapping[str, np.ndarray], fh) -> None:
@@ -246,7 +247,7 @@ def column_names(columns: Mapping[str, np.ndarray]) -> list[str]:
 
 
 def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndarray:
-    dupes = columns.get(_DUPLICATES, {})
+    dupes = cast("dict[str, list[int]]", columns.get(_DUPLICATES, {}))
     if name in dupes:
         raise DataError(expected(f"{path}: column {name!r}", "one column of that name",
                                  f"{len(dupes[name])} columns named {name!r} (positions {dupes[name]})",
@@ -255,7 +256,7 @@ def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndar
         available = column_names(columns)
         raise DataError(expected(f"{path}: column {name!r}", f"a column among {available}", "no such column",
                                  "check --states/--inputs/--time against the header", raw=True))
-    message = columns.get(_INVALID, {}).get(name)
+    message = cast("dict[str, str]", columns.get(_INVALID, {})).get(name)
     if message is not None:  # the first cell of the column that is not a number, worded as it was read
         raise DataError(message)
     arr = np.asarray(columns[name])

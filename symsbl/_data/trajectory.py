@@ -10,8 +10,8 @@ Files are read and written by :mod:`symsbl._data.io`.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -67,7 +67,7 @@ def _check_values(pre: str, names, columns) -> None:
                                      "remove or repair those rows", raw=True))
 
 
-def check_magnitude(traj: "Trajectory", source: str = "") -> None:
+def check_magnitude(traj: Trajectory, source: str = "") -> None:
     """Refuse states or inputs beyond :data:`MAX_MAGNITUDE` where data enter an identification or a
     validation (a diverged simulation may hold such values; measured data may not)."""
     pre = f"{source}: " if source else ""
@@ -166,7 +166,7 @@ def _frozen(arr: np.ndarray) -> np.ndarray:
     return arr
 
 
-@dataclass(frozen=True, eq=False, repr=False)
+@dataclass(frozen=True, eq=False, repr=False, init=False)
 class Trajectory:
     """Uniformly sampled states and inputs of one experiment (simulated or measured).
 
@@ -202,18 +202,22 @@ class Trajectory:
 
     t: np.ndarray
     states: np.ndarray
-    inputs: np.ndarray | None = None
+    inputs: np.ndarray
     state_names: tuple[str, ...] = ()
     input_names: tuple[str, ...] = ()
     diverged_at: float | None = field(default=None)
 
-    def __post_init__(self):
-        t, states, inputs = validate(self.t, self.states, self.inputs, self.state_names, self.input_names)
+    # Written out because ``inputs`` accepts None but always holds an array once validated.
+    def __init__(self, t: np.ndarray, states: np.ndarray, inputs: np.ndarray | None = None,
+                 state_names: Sequence[str] = (), input_names: Sequence[str] = (),
+                 diverged_at: float | None = None) -> None:
+        t, states, inputs = validate(t, states, inputs, state_names, input_names)
         object.__setattr__(self, "t", _frozen(t))
         object.__setattr__(self, "states", _frozen(states))
         object.__setattr__(self, "inputs", _frozen(inputs))
-        object.__setattr__(self, "state_names", tuple(self.state_names))
-        object.__setattr__(self, "input_names", tuple(self.input_names))
+        object.__setattr__(self, "state_names", tuple(state_names))
+        object.__setattr__(self, "input_names", tuple(input_names))
+        object.__setattr__(self, "diverged_at", diverged_at)
 
     def __repr__(self) -> str:
         span = f"{self.t[0]:.6g} to {self.t[-1]:.6g} s"

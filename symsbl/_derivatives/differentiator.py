@@ -161,6 +161,6 @@ class Differentiator(abc.ABC):
         """Samples ``[start, stop)`` whose ``reduce`` gives rows ``[row_start, row_stop)``."""
         return self.stencil.sample_span(row_start, row_stop)
 
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> "Differentiator":
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> Differentiator:
         """This strategy with its data-dependent settings fixed; by default itself."""
         return self

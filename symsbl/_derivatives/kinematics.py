@@ -102,6 +102,7 @@ def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, dtype=float)
     h = float(t[1] - t[0])
     window = WeakForm().resolve(t, x[:, None]).window  # about 0.5 / f_hi in samples
+    assert window is not None  # resolve() sets it
     half = int(max(3, round(0.5 * window)))
     half = min(half, (len(x) - 1) // 2)
     if half < 3:

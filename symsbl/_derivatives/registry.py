@@ -46,7 +46,7 @@ DIFFERENTIATORS: dict[str, type] = {
 }
 
 
-def get_differentiator(spec: "str | Differentiator") -> Differentiator:
+def get_differentiator(spec: str | Differentiator) -> Differentiator:
     """Resolve a differentiator from its registry name or return an instance unchanged.
 
     Parameters

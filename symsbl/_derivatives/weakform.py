@@ -158,19 +158,24 @@ class WeakForm(Differentiator):
             raise ParameterError(expected("WeakForm.window", f"a multiple of overlap={self.overlap}", self.window))
 
     @property
-    def stride(self) -> int:
-        """Sample intervals between the starts of consecutive windows."""
+    def _length(self) -> int:
+        """The window, which must have been resolved from data."""
         if self.window is None:
             raise ParameterError(expected("WeakForm.window", "a window resolved from data (call resolve(t, X))",
                                           None))
-        return self.window // self.overlap
+        return self.window
+
+    @property
+    def stride(self) -> int:
+        """Sample intervals between the starts of consecutive windows."""
+        return self._length // self.overlap
 
     @property
     def stencil(self) -> Stencil:
         """Windows of ``window`` sample intervals every ``stride``, aligned with the record's start;
         overlapping rows are combined with the earlier rows their whitening reads."""
         left = len(self._whitening()[1]) - 1 if self.overlap > 1 else 0
-        return Stencil(stride=self.stride, left=left, right=0, min_samples=self.window + 1, span=self.window)
+        return Stencil(stride=self.stride, left=left, right=0, min_samples=self._length + 1, span=self._length)
 
     #: Fraction of the power of each state below the bandwidth used by the automatic window.
     POWER_QUANTILE: ClassVar[float] = 0.999
@@ -180,7 +185,7 @@ class WeakForm(Differentiator):
     #: bin exceeds it with probability exp(-20) ~ 2e-9).
     NOISE_MARGIN: ClassVar[float] = 20.0
 
-    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> "WeakForm":
+    def resolve(self, t: np.ndarray, X: np.ndarray, n_terms: int = 0) -> WeakForm:
         """Fix an automatic window (``window=None``) from the data; a set window is kept.
 
         The window duration is ``0.5 / f_hi``, where ``f_hi`` is the highest over the states
@@ -216,7 +221,7 @@ class WeakForm(Differentiator):
                 continue
             freq = np.fft.rfftfreq(n, h)
             cum = np.cumsum(power) / power.sum()
-            f_hi = max(f_hi, freq[min(np.searchsorted(cum, self.POWER_QUANTILE), len(freq) - 1)])
+            f_hi = max(f_hi, freq[min(int(np.searchsorted(cum, self.POWER_QUANTILE)), len(freq) - 1)])
         window = int(round(self.RESPONSE_FACTOR / f_hi / h)) if f_hi > 0 else 4
         most = (n - 1) // max(2 * n_terms, 1)
         window = max(4, min(window, most))
@@ -263,7 +268,7 @@ class WeakForm(Differentiator):
         n = self.n_rows(len(A))
         return np.lib.stride_tricks.as_strided(
             A,
-            shape=(n, self.window + 1, A.shape[1]),
+            shape=(n, self._length + 1, A.shape[1]),
             strides=(self.stride * A.strides[0], A.strides[0], A.strides[1]),
             writeable=False,
         )
@@ -286,7 +291,7 @@ class WeakForm(Differentiator):
         """Weak derivative ``-int phi_j' x dt / int phi_j dt``, shape ``(n_rows, n_states)``
         (whitened when windows overlap)."""
         self._weights(1.0)  # validates the settings first
-        X, h = _check(t, X, self.window + 1)
+        X, h = _check(t, X, self._length + 1)
         _, dphi = self._weights(h)
         return self._whiten(-np.einsum("k,jkc->jc", dphi, self._windows(X)))
 

@@ -132,11 +132,13 @@ def catalogue_candidates(effects, pairs: list[Pair], symbols: dict, records) -> 
 
 def reshaped(c: Candidate, shape: float) -> Candidate:
     """``c`` with its shape parameter at ``shape`` (the same effect, place and penalty)."""
-    exprs = c.effect._exprs(c.effect.terms(c.pair.x_expr, c.pair.v_expr, shape))
-    label = f"{c.effect.name}({c.effect.shape_name}={shape:.4g})"
+    effect = c.effect
+    assert effect is not None  # only catalogue effects have a shape
+    exprs = effect._exprs(effect.terms(c.pair.x_expr, c.pair.v_expr, shape))
+    label = f"{effect.name}({effect.shape_name}={shape:.4g})"
     if c.label.endswith("]"):
         label += f" [{c.pair.where}]"
-    return Candidate(c.effect, label, c.pair, tuple((s, exprs) for s in c.pair.velocities), float(shape), c.penalty)
+    return Candidate(effect, label, c.pair, tuple((s, exprs) for s in c.pair.velocities), float(shape), c.penalty)
 
 
 def _library_terms(x, v) -> list:

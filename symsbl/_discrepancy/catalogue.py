@@ -28,8 +28,8 @@ catalogue of nonlinearities); R. Fuentes et al., J. Phys.: Conf. Ser. 1264 (2019
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import casadi as ca
 
@@ -52,7 +52,7 @@ class Variant:
         has none.
     """
 
-    effect: "Effect"
+    effect: Effect
     exprs: tuple
     shape: float | None = None
 
@@ -187,7 +187,8 @@ def catalogue(extra: Sequence[Effect] = (), *, exclude: Sequence[str] = ()) -> t
     --------
     >>> import symsbl
     >>> [e.name for e in symsbl.catalogue(exclude=["clearance"])]
-    ['coulomb_friction', 'quadratic_damping', 'velocity_squared', 'cubic_damping', 'cubic_stiffness', 'quadratic_stiffness']
+    ['coulomb_friction', 'quadratic_damping', 'velocity_squared', 'cubic_damping', 'cubic_stiffness',
+     'quadratic_stiffness']
     """
     for name in exclude:
         get_effect(name)

@@ -27,7 +27,7 @@ import numpy as np
 from .._base.errors import SimulationError
 from .._refine.engine import Engine
 from .._refine.solver import Iterate, lm
-from .._simulation.signals import Sampled, Sine
+from .._simulation.signals import Sampled, Signal, Sine
 from .._simulation.simulate import simulate
 
 __all__ = ["folds", "predictive_log_likelihood", "cross_validated_gain", "separating_experiment"]
@@ -50,6 +50,7 @@ def predictive_log_likelihood(model, record, measured, settings, w: np.ndarray) 
     none = np.array([], dtype=int)
     with np.errstate(all="ignore"):
         it, _ = lm(passes, start, np.zeros_like(theta), none, tol=1e-6)
+    assert it.blocks is not None  # lm returns the iterate with its pass
     rr = it.blocks.rr.sum(axis=0)
     if not np.all(np.isfinite(rr)):
         return -math.inf
@@ -109,6 +110,7 @@ def separating_experiment(model_a, model_b, record, measured, noise: dict, max_s
     x0 = np.zeros(len(model_a.state_names))
     rms = float(np.sqrt(np.mean(rec.inputs[:, 0] ** 2)))
     lo, hi = _band(rec)
+    trials: list[tuple[str, float, float | None, Signal]]  # (description, scale, frequency or None, input)
     trials = [(f"the training input scaled by {s:g} (RMS {s * rms:.3g})", s, None, Sampled(rec.t, s * rec.inputs))
               for s in (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)]
     for f in np.geomspace(lo, hi, 6):

@@ -118,7 +118,7 @@ def null_gains(design, structure, model, train, velocity, candidates, noise, n_b
     system = model.to_system()
     U = train.inputs if train.inputs.shape[1] else None
     x0 = train.states[0]
-    out = []
+    out: list[float] = []
     try:
         clean = simulate(system, train.t, inputs=None if U is None else Sampled(train.t, U), x0=x0, method="rk4",
                          on_divergence="raise")
@@ -184,7 +184,8 @@ def decide(run, it: int, model, rule: DecisionRule, seed: int) -> DiscrepancySte
     scores, threshold, null = _threshold(run, model, rule, it, seed)
     for pos, c in enumerate(scores[:3]):  # held-out error of the leading candidates
         if c.admissible and c.evidence_gain > 0:
-            scores[pos] = dataclasses.replace(c, error_after=run.err(design.model(run.with_terms(c), data), run.heldout))
+            scores[pos] = dataclasses.replace(c, error_after=run.err(design.model(run.with_terms(c), data),
+                                                                     run.heldout))
     step = dict(iteration=it, model=model, error_train=err_train, error_heldout=err_held, disagreement=where,
                 scores=tuple(scores), threshold=threshold, null_gains=tuple(null))
     return DiscrepancyStep(**step, **_choose(run, scores, threshold, err_held, rule))

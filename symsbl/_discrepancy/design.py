@@ -4,11 +4,13 @@ of each record (computed once, shared by every fit of every iteration), fits and
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 
 from .._data.trajectory import Trajectory
 from .._model import Equation, IdentifiedModel
+from .._regression.gram import GramStats
 from .._regression.rows import regression_stats
 from .._regression.rvm import RVM
 from .._regression.support import subset_stats
@@ -32,8 +34,9 @@ class Design:
         exprs = [e for terms in base.values() for e in terms] + [e for v in candidates for e in v.exprs]
         self.library = Library(exprs, variables)
         self.derivative = derivative
-        self._stats: dict[int, object] = {}
-        #: Effective-sample fraction of the rows (1 for independent residuals), see :func:`~symsbl._data.residuals.effective_fraction`.
+        self._stats: dict[int, tuple[Trajectory, GramStats]] = {}
+        #: Effective-sample fraction of the rows (1 for independent residuals), see
+        #: :func:`~symsbl._data.residuals.effective_fraction`.
         self.weight = 1.0
 
     def column(self, expr) -> int | None:
@@ -82,7 +85,7 @@ def heldout_error(model: IdentifiedModel, traj: Trajectory, measure: str, design
     stats = design.stats(traj)
     k = list(traj.state_names).index(velocity)
     eq = model.equation(velocity)
-    cols = [design.column(t.expr) for t in eq.terms]
+    cols = cast("list[int]", [design.column(t.expr) for t in eq.terms])  # the model's terms are design columns
     theta = eq.coefs
     rss = stats.yty[k] - 2 * theta @ stats.dty[cols, k] + theta @ stats.gram[np.ix_(cols, cols)] @ theta
     n = stats.n_samples

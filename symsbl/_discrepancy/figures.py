@@ -27,7 +27,8 @@ def _equation_residual(model: IdentifiedModel, data: Trajectory, velocity: str) 
     """Measured ``dv/dt`` (central differences) minus the model's right-hand side for ``v``, per sample."""
     f = model.to_system().rhs_function().map(data.n_samples)
     X = np.column_stack([data.column(n) for n in model.state_names])
-    U = np.column_stack([data.column(n) for n in model.input_names]) if model.input_names else np.zeros((data.n_samples, 0))
+    U = (np.column_stack([data.column(n) for n in model.input_names]) if model.input_names
+         else np.zeros((data.n_samples, 0)))
     rhs = f(X.T, U.T).full()[model.state_names.index(velocity)]
     return np.gradient(data.column(velocity), data.t) - rhs
 
@@ -46,7 +47,8 @@ def _before_after(ax, report, heldout: Trajectory | None, velocity: str, displac
     t = heldout.t[keep]
     if report.error_measure == "equation":
         last = report.steps[-1]
-        errors = (report.steps[0].error_heldout, last.error_after if last.error_after is not None else last.error_heldout)
+        errors = (report.steps[0].error_heldout,
+                  last.error_after if last.error_after is not None else last.error_heldout)
         reach = 0.0
         for model, err, colour, ls, label in ((report.initial, errors[0], BEFORE, "-", "before"),
                                               (report.final, errors[1], AFTER, "--", "after")):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import casadi as ca
 import numpy as np
@@ -134,7 +134,8 @@ def describe_effects(effects) -> str:
             terms += f" (g from {e.grid[0]:g} to {e.grid[-1]:g} of the {e.grid_of} amplitude)"
         rule = "must dissipate" if e.sign == -1 else "either sign"
         rows.append(f"{e.name:22s} {e.family:10s} {terms:52s} {rule:15s} {e.description}")
-    header = f"{'effect':22s} {'family':10s} {'term (x: displacement, v: velocity)':52s} {'coefficient':15s} description"
+    header = (f"{'effect':22s} {'family':10s} {'term (x: displacement, v: velocity)':52s} {'coefficient':15s} "
+              "description")
     return "\n".join([header] + rows)
 
 

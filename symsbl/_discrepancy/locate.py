@@ -62,7 +62,8 @@ def locate(model, train, heldout, design, displacement, velocity, measure, measu
     worst = max(regions, key=lambda reg: reg[2] / max(reg[1], 1e-12))
     words = [f"equation residual {100 * residual_nrmse:.3g} % of the target's spread"]
     if worst[2] > 1.5 * worst[1]:
-        words.append(f"concentrated at {worst[0]}: {100 * worst[2]:.0f} % of its energy in {100 * worst[1]:.0f} % of the rows")
+        words.append(f"concentrated at {worst[0]}: {100 * worst[2]:.0f} % of its energy in {100 * worst[1]:.0f} % "
+                     "of the rows")
     else:
         words.append("spread evenly over the phase plane")
     if abs(jump_z) > 5:
@@ -70,5 +71,5 @@ def locate(model, train, heldout, design, displacement, velocity, measure, measu
     if err:
         i = int(np.argmax(err))
         words.append(f"held-out simulation error largest near t = {mids[i]:.3g} s ({100 * err[i]:.3g} %)")
-    return Disagreement(residual_nrmse, effective_fraction(r), regions, jump, float(jump_z), (edges_x, edges_v, mean_map),
-                        (np.array(mids), np.array(err)), "; ".join(words))
+    return Disagreement(residual_nrmse, effective_fraction(r), regions, jump, float(jump_z),
+                        (edges_x, edges_v, mean_map), (np.array(mids), np.array(err)), "; ".join(words))

@@ -345,7 +345,8 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
         if not gain >= rule.margin_nats:
             continue
         score = _score(run, r, fit, without.fitted(), math.nan)
-        if score.error_after is not None and not np.isfinite(score.error_after):
+        assert score.error_after is not None  # measured for a refitted candidate
+        if not np.isfinite(score.error_after):
             continue  # it runs away on the held-out record
         # confirmed like an addition: it must predict the halves it was not fitted on better
         cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)

@@ -24,6 +24,7 @@ import sympy as sp
 from .._base.rule import DEFAULT as DEFAULT_RULE
 from .._base.rule import SelectionRule
 from .._model import Equation, IdentifiedModel, TermEstimate
+from .._regression.rvm import RVM
 from .._symbolic.library import Library
 from .periodic import Spectra
 from .skeleton import Skeleton
@@ -50,9 +51,9 @@ class Screened:
     linear: Skeleton
     skeleton: Skeleton
     law_terms: list
-    law: object
+    law: RVM
     force_terms: list
-    memory: object
+    memory: RVM
 
     @property
     def n_candidates(self) -> int:
@@ -133,7 +134,7 @@ class Branches:
         diverged is absent from ``fits``)."""
         scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
         penalty = rule.nats_per_term(n_samples, n_candidates)
-        visible = max((k for k in ("linear", "memoryless") if k in fits), key=scores.get, default=None)
+        visible = max((k for k in ("linear", "memoryless") if k in fits), key=scores.__getitem__, default=None)
         if visible == "memoryless" and len(fits["memoryless"].equation(self.v).terms) <= 3 and "linear" in fits:
             visible = "linear"  # its selection removed every force term
         law = fits["hidden"].equation(self.z).terms if "hidden" in fits else ()

@@ -93,7 +93,7 @@ def _repeat_lag(u: np.ndarray) -> int | None:
     return int(lags[ok[0]]) if ok.size else None
 
 
-def split_periods(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> Periods:
+def split_periods(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> Periods | None:
     """Cut a record into the whole periods of its input.
 
     Parameters

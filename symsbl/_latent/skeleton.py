@@ -88,7 +88,8 @@ def fit_linear(spectra: Spectra) -> Skeleton:
     dof = max(J.shape[0] - J.shape[1], 1)
     cov = np.linalg.pinv(J.T @ J) * (2 * sol.cost / dof)
     rms = float(np.sqrt(2 * 2 * sol.cost) / spectra.N)  # Parseval over one period (rfft: both halves)
-    return Skeleton(*(sol.x * scale), std=tuple(np.sqrt(np.diag(cov))), criterion=rms, evaluations=int(sol.nfev))
+    m, c, k = sol.x * scale
+    return Skeleton(m, c, k, std=tuple(np.sqrt(np.diag(cov))), criterion=rms, evaluations=int(sol.nfev))
 
 
 def _fit_linear_record(spectra: Spectra) -> Skeleton:
@@ -137,5 +138,6 @@ def split(criterion, linear: Skeleton) -> Skeleton:
         evaluations += int(sol.nfev)
         if best is None or sol.fun < best.fun:
             best = sol
+    assert best is not None  # the loop ran over three starts
     m, c, k = best.x * s
     return Skeleton(m, c, k, criterion=float(np.exp(best.fun)), evaluations=evaluations)

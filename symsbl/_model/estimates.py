@@ -106,13 +106,13 @@ class Equation:
     runners_up: tuple = field(default=(), compare=False)
 
     @classmethod
-    def kinematic(cls, lhs: str, velocity) -> "Equation":
+    def kinematic(cls, lhs: str, velocity) -> Equation:
         """The fixed equation ``lhs' = velocity`` of a position and its velocity (a casadi.SX symbol)."""
         term = TermEstimate(expr=velocity, coef=1.0, std=0.0)
         return cls(lhs, (term,), np.zeros((1, 1)), math.nan, math.nan, 0, fixed=True)
 
     @classmethod
-    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=()) -> "Equation":
+    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=()) -> Equation:
         """The equation of a fitted :class:`~symsbl.RVM`: one term per kept column, in ``fit.active_`` order.
 
         Parameters
@@ -169,7 +169,7 @@ class Equation:
     def __str__(self) -> str:
         if self.fixed:
             return f"{self.lhs}' = " + " + ".join(pretty(t.name) for t in self.terms) + "  (kinematics, fixed)"
-        parts = []
+        parts: list[str] = []
         for t in self.terms:
             text = format_uncertain(t.coef, t.std, signed=bool(parts)) if not t.fixed else (
                 f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")

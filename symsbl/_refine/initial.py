@@ -108,5 +108,6 @@ def _fit(model, record, observed, guess, interpolation, substeps, jit) -> tuple[
     passes, rows, w = _passes(fitted, record, observed, interpolation, substeps, jit)
     start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])), w)
     it, _ = initial_states(passes, start, sweeps=8, rtol=0.0)
+    assert it.blocks is not None  # initial_states returns the iterate with its pass
     phi = _growth(it.blocks.end_S, 0, _state_scale(rows, it.X0))
     return (it.X0[0] if np.all(np.isfinite(it.X0)) else guess), phi

@@ -49,7 +49,7 @@ class Parameterisation:
     names: tuple
 
     @classmethod
-    def of(cls, model: IdentifiedModel, free: bool = True) -> "Parameterisation":
+    def of(cls, model: IdentifiedModel, free: bool = True) -> Parameterisation:
         """Every term of every non-fixed equation is free, except coefficients fixed by convention (none with
         ``free=False``: the model as it is)."""
         terms, theta, names = [], [], []
@@ -146,7 +146,7 @@ class Records:
         return ca.vertcat(*[x[i] for i in self.measured])
 
     @classmethod
-    def of(cls, model: IdentifiedModel, records, measured, interpolation: str, substeps: int) -> "Records":
+    def of(cls, model: IdentifiedModel, records, measured, interpolation: str, substeps: int) -> Records:
         """Lay out ``records`` (Trajectories holding the measured states and the model's inputs)."""
         names = model.state_names
         idx = tuple(names.index(m) for m in measured)
@@ -257,7 +257,8 @@ def choose_substeps(param: Parameterisation, records, guess: np.ndarray, theta: 
         rows = np.unique(np.concatenate([np.linspace(0, r.n_samples - 1, min(256, r.n_samples)).astype(int),
                                          np.argmax(G, axis=0), np.argmin(G, axis=0)]))
         X = G[rows]
-        U = np.column_stack([r.column(n) for n in model.input_names])[rows] if model.inputs else np.zeros((rows.size, 0))
+        U = (np.column_stack([r.column(n) for n in model.input_names])[rows] if model.inputs
+             else np.zeros((rows.size, 0)))
         J = np.asarray(jac.map(rows.size)(X.T, U.T, np.repeat(theta[:, None], rows.size, 1))).reshape(nx, rows.size, nx)
         ev = np.linalg.eigvals(np.transpose(J, (1, 0, 2))).ravel()  # (samples * nx,)
         ev = ev[np.isfinite(ev) & (np.abs(ev) > 0)]

@@ -2,8 +2,8 @@
 
 The objective is the relevance vector machine's, the :class:`~symsbl.SelectionRule`'s: log evidence minus
 ``T`` nats per free term (``T = 1/2 log N + log M`` by default, the extended BIC with ``N`` the measured
-samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the equation-error
-runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
+samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the
+equation-error runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
 term without refitting; terms are removed one by one while that raises the objective. The structure
 it settles on is then refitted, and kept only if the refit confirms the gain.
 """
@@ -271,8 +271,8 @@ def _extended_from_first(engine: Engine, first, every: np.ndarray, alpha: np.nda
         cold = engine.fit(every, first.theta, alpha, longest=int(first.length))
     except SimulationError:
         pass
-    same = cold is not None and np.array_equal(cold.starts, first.starts)
-    if same and 0.5 * np.sum(cold.ssr * first.w) <= 0.5 * np.sum(first.ssr * first.w) + 1.0:
+    if cold is not None and np.array_equal(cold.starts, first.starts) and (
+            0.5 * np.sum(cold.ssr * first.w) <= 0.5 * np.sum(first.ssr * first.w) + 1.0):
         return cold
     try:
         return engine.fit(every, first.theta, alpha, warm=first)
@@ -302,5 +302,5 @@ def _one_of_each_pair(engine: Engine, active: np.ndarray, post, alpha: np.ndarra
             if abs(after[a] - after[b]) < equivalence_nats:
                 removed.append(max((a, b), key=lambda n: keys[n]))
             else:
-                removed.append(max((a, b), key=after.get))
+                removed.append(max((a, b), key=after.__getitem__))
     return removed

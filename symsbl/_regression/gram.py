@@ -10,8 +10,8 @@ product) block by block, with ``D^T Y`` taken from each block in the same pass.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 
@@ -110,7 +110,7 @@ class GramStats:
         return self.dty.shape[1]
 
     @classmethod
-    def from_arrays(cls, D, Y, *, qr=False, chunk_size=8192, _names=("D", "Y")) -> "GramStats":
+    def from_arrays(cls, D, Y, *, qr=False, chunk_size=8192, _names=("D", "Y")) -> GramStats:
         """Statistics of a dictionary ``D`` (n_samples, n_terms) and targets ``Y`` (n_samples,) or
         (n_samples, n_targets). ``qr=True`` also accumulates the factor R (chunks of ``chunk_size``
         rows)."""
@@ -125,7 +125,7 @@ class GramStats:
         return cls(gram, dty, yty, Y.sum(axis=0), len(D), r_factor)
 
     @classmethod
-    def from_chunks(cls, chunks: Iterable, *, qr=False) -> "GramStats":
+    def from_chunks(cls, chunks: Iterable, *, qr=False) -> GramStats:
         """Accumulate over an iterable of ``(D_chunk, Y_chunk)`` pairs without holding D.
 
         Memory is O(n_terms^2) and cost O(N n_terms^2); the result equals :meth:`from_arrays`
@@ -138,7 +138,7 @@ class GramStats:
             raise DataError(expected("chunks", "at least one (D_chunk, Y_chunk) pair", "none", raw=True))
         return total
 
-    def __add__(self, other: "GramStats") -> "GramStats":
+    def __add__(self, other: GramStats) -> GramStats:
         if not isinstance(other, GramStats):
             return NotImplemented
         if self.gram.shape != other.gram.shape or self.dty.shape != other.dty.shape:
@@ -152,7 +152,7 @@ class GramStats:
             self.y_sum + other.y_sum, self.n_samples + other.n_samples, r_factor,
         )
 
-    def scaled(self, factor: float) -> "GramStats":
+    def scaled(self, factor: float) -> GramStats:
         """Statistics of ``factor`` times as many samples (e.g. ``n_eff / n`` for correlated noise)."""
         factor = number("factor", factor, low=0.0, strict=True)
         r_factor = None if self.r_factor is None else np.sqrt(factor) * self.r_factor
@@ -161,7 +161,7 @@ class GramStats:
             factor * self.n_samples, r_factor,
         )
 
-    def target(self, k: int) -> "GramStats":
+    def target(self, k: int) -> GramStats:
         """Statistics of target ``k`` alone."""
         k = check_target(k, self.n_targets)
         r_factor = None

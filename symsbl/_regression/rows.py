@@ -16,8 +16,8 @@ The checks on what enters live here too, once: names, variation of states and in
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -232,5 +232,6 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
                 continue
             part = block_stats(traj.states, Z, r0, r1, diff, evaluator, traj.dt, chunk_size, bar)
             total = part if total is None else total + part
+    assert total is not None  # enough_rows() refused records without a row
     traj = trajectories[0]
     return RegressionStats(total, library, traj.state_names, traj.input_names, diff)

@@ -26,8 +26,8 @@ M. E. Tipping, "Sparse Bayesian learning and the relevance vector machine", JMLR
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -315,7 +315,8 @@ def solve(
     # none gains ``prune`` nats on its own, although the penalised optimum is far better.
     n_iter, converged = _iterate(state, 0.0, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
     if prune > 0:
-        more, converged = _iterate(state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
+        more, converged = _iterate(state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n,
+                                   log)
         n_iter += more
 
     state.recompute()  # clear rank-one drift before reporting

@@ -12,7 +12,7 @@ refines its answer for one state equation:
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -11,8 +11,8 @@ Python code that holds it. Threads therefore help when building the statistics d
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Sequence
 
 from .._base.checks import integer
 from .._base.errors import DataError, expected

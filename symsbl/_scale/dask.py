@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import casadi as ca
 import numpy as np
@@ -71,7 +71,7 @@ class _PortableLibrary:
     key: str
 
     @classmethod
-    def of(cls, library: Library) -> "_PortableLibrary":
+    def of(cls, library: Library) -> _PortableLibrary:
         with ca.global_pickle_context():
             blob = pickle.dumps(library)
         return cls(blob, hashlib.sha1(blob).hexdigest())
@@ -99,7 +99,8 @@ class _Slice:
     r1: int
 
 
-def _slice_stats(arr, plan: _Slice, library: _PortableLibrary, diff, names, h, chunk_size, jit):
+def _slice_stats(arr, plan: _Slice, library: _PortableLibrary, diff, names: tuple[tuple[str, ...], tuple[str, ...]], h,
+                 chunk_size, jit):
     """Map step: (statistics, per-column minimum, per-column maximum) of one slice."""
     lib = library.load()
     arr = np.asarray(arr, dtype=float)

@@ -13,9 +13,10 @@ import contextlib
 import math
 import struct
 import zipfile
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -92,7 +93,7 @@ def chunked(chunks, *, states: Sequence[str] | None = None, inputs: Sequence[str
     elif isinstance(chunks, (list, tuple)):
         source = lambda: iter(chunks)  # noqa: E731
     elif isinstance(chunks, Iterable) and not isinstance(chunks, (np.ndarray, Trajectory, str, bytes)):
-        used = []
+        used: list[bool] = []
 
         def source():
             if used:
@@ -116,11 +117,12 @@ def _npz_columns(path: Path, names: Sequence[str]) -> tuple[dict, int]:
         raise DataError(expected(str(path), "a readable .npz file", f"an unreadable file ({err})", raw=True)) from None
     with zf:
         members = {info.filename[:-4]: info for info in zf.infolist() if info.filename.endswith(".npy")}
-        readers, lengths = {}, {}
+        readers: dict[str, tuple[str, Any]] = {}
+        lengths: dict[str, int] = {}
         for name in names:
             if name not in members:
-                raise DataError(expected(f"{path}: column {name!r}", f"a column among {sorted(members)}", "no such column",
-                                         raw=True))
+                raise DataError(expected(f"{path}: column {name!r}", f"a column among {sorted(members)}",
+                                         "no such column", raw=True))
             info = members[name]
             with zf.open(info) as fh:
                 version = np.lib.format.read_magic(fh)
@@ -253,19 +255,23 @@ class RecordReader:
 
     def __init__(self, record, index: int):
         self.index = index
+        self.names: tuple[tuple[str, ...], tuple[str, ...]] | None
+        self._chunks: Callable[[], Iterator]
         if isinstance(record, Trajectory):
             self.label = f"records[{index}]"
             self.names = (record.state_names, record.input_names)
-            self._chunks = lambda: (record.slice(a, a + BLOCK_SAMPLES) for a in range(0, record.n_samples, BLOCK_SAMPLES))
+            self._chunks = lambda: (record.slice(a, a + BLOCK_SAMPLES)
+                                    for a in range(0, record.n_samples, BLOCK_SAMPLES))
         elif isinstance(record, ChunkedRecord):
             self.label = f"records[{index}] ({record.label})"
-            self.names = None if record.state_names is None else (record.state_names, record.input_names)
+            states, inputs = record.state_names, record.input_names  # both None or both set
+            self.names = None if states is None or inputs is None else (states, inputs)
             self._chunks = record.source
         else:
             raise DataError(expected(f"records[{index}]", "a Trajectory or a ChunkedRecord (from symsbl.chunked or "
                                      "open_npz)", type(record).__name__, raw=True))
-        self.h = None
-        self.t_last = None
+        self.h: float | None = None
+        self.t_last: float | None = None
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         for k, chunk in enumerate(self._chunks()):
@@ -315,21 +321,28 @@ class RecordReader:
 
 def blocks(reader: RecordReader, block_samples: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, bool]]:
     """Gather chunks into arrays of at least ``block_samples`` samples; flag the last one."""
-    pending, n, previous = [], 0, None
+    pending: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    n, previous = 0, None
     for part in reader:
         pending.append(part)
         n += len(part[0])
         if n >= block_samples:
             if previous is not None:
                 yield (*previous, False)
-            previous = tuple(np.concatenate(cols) if len(pending) > 1 else cols[0] for cols in zip(*pending))
+            previous = _join(pending)
             pending, n = [], 0
     if pending:
         if previous is not None:
             yield (*previous, False)
-        previous = tuple(np.concatenate(cols) if len(pending) > 1 else cols[0] for cols in zip(*pending))
+        previous = _join(pending)
     if previous is not None:
         yield (*previous, True)
+
+
+def _join(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``(t, X, U)`` of consecutive parts as one."""
+    t, X, U = (np.concatenate(cols) if len(parts) > 1 else cols[0] for cols in zip(*parts))
+    return t, X, U
 
 
 def read_windows(records: Sequence, plan) -> list[Trajectory]:
@@ -348,6 +361,7 @@ def read_windows(records: Sequence, plan) -> list[Trajectory]:
             position += len(t)
             if position >= max(b for _, _, b in wanted):
                 break
+        assert reader.names is not None  # known once a chunk has been read
         for n, _, _ in wanted:
             t, X, U = (np.concatenate(cols) for cols in zip(*parts[n]))
             out[n] = Trajectory(t=t, states=X, inputs=U, state_names=reader.names[0], input_names=reader.names[1])

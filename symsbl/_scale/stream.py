@@ -126,7 +126,8 @@ def _stream_stats(records, library, *, derivative, chunk_size, block_samples, ji
     records = as_records(records)
     if not isinstance(library, Library):
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
-    for name, value, least in (("chunk_size", chunk_size, 1), ("block_samples", block_samples, 2), ("n_jobs", n_jobs, 1)):
+    for name, value, least in (("chunk_size", chunk_size, 1), ("block_samples", block_samples, 2),
+                               ("n_jobs", n_jobs, 1)):
         integer(name, value, low=least, error=DataError)
     diff = get_differentiator(derivative)
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)

@@ -131,7 +131,8 @@ class OdeSystem:
 
     @property
     def is_continuous(self) -> bool:
-        """False if the right-hand side can jump (sign, conditionals, floor/ceil, comparisons); abs/min/max are kinks."""
+        """False if the right-hand side can jump (sign, conditionals, floor/ceil, comparisons); abs/min/max are
+        kinks."""
         return not uses_ops(self.rhs, DISCONTINUOUS_OPS)
 
     def _symbols(self):

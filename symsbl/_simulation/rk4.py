@@ -201,16 +201,17 @@ def run_rk4_batch(system: OdeSystem, t, signals, x0, parameters, *, substeps: in
     buf, trigger = fn.buffer()
     states = np.empty((n_pad + 1, D, system.n_states))
     states[0] = x0
-    buf.set_arg(3, memoryview(P))  # CasADi's column-major (np, D) is the C-ordered (D, np)
+    # CasADi's column-major (np, D) is the C-ordered (D, np)
+    buf.set_arg(3, memoryview(P))  # type: ignore[call-arg, arg-type]
     with Progress(f"simulate {system.name} x {D} draws (rk4)", total=n_steps, unit="steps") as bar:
         for k0 in range(0, n_pad, chunk):
-            buf.set_arg(0, memoryview(states[k0]))
-            buf.set_arg(1, memoryview(inputs[0][k0:k0 + chunk]))
-            buf.set_arg(2, memoryview(inputs[1][k0:k0 + chunk]))
+            buf.set_arg(0, memoryview(states[k0]))  # type: ignore[call-arg]
+            buf.set_arg(1, memoryview(inputs[0][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_arg(2, memoryview(inputs[1][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
             if n_ud:
-                buf.set_arg(4, memoryview(inputs[2][k0:k0 + chunk]))
-            buf.set_res(0, memoryview(states[k0 + 1:k0 + chunk + 1]))
+                buf.set_arg(4, memoryview(inputs[2][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_res(0, memoryview(states[k0 + 1:k0 + chunk + 1]))  # type: ignore[call-arg, arg-type]
             trigger()
             bar.update(min(chunk, n_steps - k0))
     out = states[:t.size]
-    return out, np.isfinite(out).all(axis=(0, 2))
+    return out, np.isfinite(out).all(axis=(0, 2))  # type: ignore[return-value]

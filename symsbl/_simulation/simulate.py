@@ -11,7 +11,7 @@ Two integrators, one registry (:data:`METHODS`):
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -47,6 +47,7 @@ def time_grid(duration: float, fs: float, t0: float = 0.0) -> np.ndarray:
 
 def resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
     """Turn ``inputs`` (None, a Signal, a sequence of Signals or an array on ``t``) into a list of Signals."""
+    signals: list[Signal]
     if inputs is None:
         signals = [FreeDecay(system.n_inputs)] if system.n_inputs else []
     elif isinstance(inputs, Signal):

@@ -86,6 +86,7 @@ def _tokens(text: str, where: str) -> list[tuple[str, str, int]]:
                 "the listed functions"
             )
         kind = m.lastgroup
+        assert kind is not None  # every alternative of _TOKEN is a named group
         out.append((kind, m.group(kind), m.start(kind)))
         pos = m.end()
     out.append(("end", "", len(text)))
@@ -325,7 +326,9 @@ def parse_expression(text: str, symbols: Mapping[str, ca.SX], *, where: str = "e
     >>> parse_expression("__import__('os')", {"x1": x1})
     Traceback (most recent call last):
     ...
-    symsbl.ExpressionError: expression: expected a term such as x1**2*Abs(x2), received "__import__('os')": the character "'" at position 11 is not part of the grammar; use numbers, the variable names, + - * / ** and the listed functions
+    symsbl.ExpressionError: expression: expected a term such as x1**2*Abs(x2), received "__import__('os')": the
+    character "'" at position 11 is not part of the grammar; use numbers, the variable names, + - * / ** and the
+    listed functions
     """
     if not isinstance(text, str):
         raise ExpressionError(f"{where}: expected a string such as 'x1**2', received {type(text).__name__}")

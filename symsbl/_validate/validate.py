@@ -197,15 +197,15 @@ def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str,
     """The start of the re-simulation: the first sample (an unmeasured velocity from its position) or, ``how="fit"``,
     the state that best explains the first stretch; and the samples in which a state error grows 10^4-fold."""
     position_of = {v: x for x, v in model.kinematics}
-    x0 = []
+    first = []
     for n in model.state_names:
         if n in data.state_names:
-            x0.append(data.column(n)[0])
+            first.append(data.column(n)[0])
         elif n in position_of:
-            x0.append(estimate_velocity(data.t, data.column(position_of[n]))[0])
+            first.append(estimate_velocity(data.t, data.column(position_of[n]))[0])
         else:
-            x0.append(0.0)
-    x0 = np.array(x0)
+            first.append(0.0)
+    x0 = np.array(first)
     if how == "first":
         return x0, None
 
@@ -309,8 +309,8 @@ def validate_model(
     kw = dict(inputs=signal, x0=x0, method=method, substeps=substeps, on_divergence="truncate")
     try:
         sim = simulate(system, data.t, **kw)
-    except DivergenceError as err:  # within the first step: the first two samples stand for the response
-        sim = Trajectory(data.t[:2], np.vstack([x0, x0]), None, model.state_names, diverged_at=err.diverged_at)
+    except DivergenceError as exc:  # within the first step: the first two samples stand for the response
+        sim = Trajectory(data.t[:2], np.vstack([x0, x0]), None, model.state_names, diverged_at=exc.diverged_at)
     n = sim.n_samples
     diverged = getattr(sim, "diverged_at", None)
     if diverged is not None or n < data.n_samples:
