@@ -162,9 +162,9 @@ def _unmeasured_allowed(states, kinematics) -> tuple:
 def _cmd_identify(args) -> int:
     from ._base.checks import integer
     from ._base.rule import SelectionRule
-    from ._refine.options import RefineOptions
     from ._derivatives.weakform import WeakForm
     from ._identify import identify
+    from ._refine.options import RefineOptions
     from ._symbolic.symbols import symbols
 
     states, inputs = _names(args.states), _names(args.inputs)
@@ -272,9 +272,9 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
+    from ._base.outputs import same_file
     from ._discrepancy import catalogue, discrepancy
     from ._discrepancy.inputs import describe_effects, read_effects
-    from ._base.outputs import same_file
 
     effects = catalogue(read_effects(args.effects) if args.effects else ())
     if args.list_effects:
@@ -438,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
                      epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()))
     parser.add_argument("--version", action="version", version=f"symsbl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)  # a parent: only its arguments are copied
     common.add_argument("--quiet", action="store_true",
                         help="no progress lines (they are shown only on a terminal, for steps longer than 0.5 s)")
     _add_identify(sub, common)

@@ -18,12 +18,11 @@ import dataclasses
 
 import numpy as np
 
-
 from ._base.errors import ParameterError, expected
 from ._base.rule import SelectionRule
+from ._data.trajectory import Trajectory, noise_levels
 from ._derivatives.kinematics import complete_states, latent_states, parse_kinematics
 from ._latent import identify_latent
-from ._data.trajectory import Trajectory, noise_levels
 from ._model import FitMethod, IdentifiedModel
 from ._refine import refine_or_keep
 from ._refine.options import RefineOptions, as_options
@@ -70,8 +69,8 @@ def identify(
     jit : {"auto", True, False}
         Compile the dictionary with a C compiler when available.
     equivalence_nats : float, optional
-        Near-equivalent candidates (default: the selection rule's, 2 nats): a kept term is swapped for a simpler candidate (see
-        :func:`complexity`) when the swap costs less than this many nats of log evidence, and
+        Near-equivalent candidates (default: the selection rule's, 2 nats): a kept term is swapped for a
+        simpler candidate (see :func:`complexity`) when the swap costs less than this many nats of log evidence, and
         every candidate within this margin is reported as indistinguishable. At 16 mm of
         displacement ``x1``, ``sin(x1)`` and ``tan(x1)`` differ by parts in 10^4 and the
         evidence cannot separate them; parsimony then keeps ``x1``.

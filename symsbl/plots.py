@@ -31,7 +31,8 @@ from ._figures import BAND, MEASURED, MODEL, POSTERIOR, PRIOR, forcing_window, n
 from ._model import Equation, IdentifiedModel
 from ._validate.validate import Validation
 
-__all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "model_path_figure", "term_label", "forcing_window"]
+__all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "model_path_figure", "term_label",
+           "forcing_window"]
 
 def _equation_for(model: IdentifiedModel, state: str | None) -> Equation:
     if not model.equations:
@@ -291,7 +292,8 @@ def model_path_figure(model: IdentifiedModel):
     >>> import symsbl, symsbl.plots
     >>> x1, x2, F = symsbl.symbols("x1 x2 F")
     >>> train = symsbl.simulate(symsbl.systems.duffing(), symsbl.time_grid(1.0, 4096),
-    ...                         inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)).with_noise(0.01, seed=0)
+    ...                         inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)
+    ...                         ).with_noise(0.01, seed=0)
     >>> model = symsbl.identify(train, symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F]))
     >>> fig = symsbl.plots.model_path_figure(model)
     >>> len(fig.axes)

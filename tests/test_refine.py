@@ -688,7 +688,8 @@ def test_an_input_held_between_samples_is_refined_as_held():
     errors = {}
     for kind in ("cubic", "hold"):
         if kind == "cubic":  # the smoothed steps leave a residual that depends on the input, and refinement says so
-            with pytest.warns(symsbl.RefineWarning, match=r"residual depends on the input|segments of at most|output error is biased"):
+            with pytest.warns(symsbl.RefineWarning,
+                              match=r"residual depends on the input|segments of at most|output error is biased"):
                 model = identify(record, library, refine_options={"interpolation": kind})
         else:
             model = identify(record, library, refine_options={"interpolation": kind})

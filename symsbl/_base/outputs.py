@@ -27,6 +27,7 @@ import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import IO, Any
 
 from .errors import DataError, expected
 
@@ -210,7 +211,7 @@ def distinct_outputs(outputs: Sequence[tuple[str, object]]) -> None:
         seen[key] = (what, path)
 
 
-def write_atomic(path, write: Callable[[object], None], *, binary: bool = True, suffix: str = "") -> None:
+def write_atomic(path, write: Callable[[IO[Any]], object], *, binary: bool = True, suffix: str = "") -> None:
     """Write through ``write(file)`` to ``path`` as :func:`output_target` resolves it.
 
     A file (or a link's target) gets a temporary file beside it, renamed into place: an error or an
@@ -243,7 +244,7 @@ def write_atomic(path, write: Callable[[object], None], *, binary: bool = True, 
         raise
 
 
-def _write_through(path: Path, write: Callable[[object], None], binary: bool) -> None:
+def _write_through(path: Path, write: Callable[[IO[Any]], object], binary: bool) -> None:
     """Render the content, then write it to ``path`` in one open: through this process's own standard output
     or error when ``path`` is that file (``/dev/stdout``: after what was printed, at the same offset), else
     opened for appending (as ``>>``)."""

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["effective_fraction", "ljung_box", "cross_correlation", "ResidualTest", "residual_test", "prewhitening", "LEVEL"]
+__all__ = ["effective_fraction", "ljung_box", "cross_correlation", "ResidualTest", "residual_test", "prewhitening",
+           "LEVEL"]
 
 
 def effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:

@@ -213,22 +213,23 @@ class DiscrepancyReport:
     @property
     def added(self) -> list[EffectScore]:
         """The effects in the final model, in the order they were added (one replaced later is left out)."""
-        return [s.added for s in self._kept()]
+        return [added for _, added in self._kept()]
 
-    def _kept(self) -> list[DiscrepancyStep]:
+    def _kept(self) -> list[tuple[DiscrepancyStep, EffectScore]]:
+        """Each step whose effect is in the final model, with that effect."""
         replaced = {s.replaces for s in self.steps if s.replaces is not None}
-        return [s for s in self.steps if s.added is not None and s.added.label not in replaced]
+        return [(s, s.added) for s in self.steps if s.added is not None and s.added.label not in replaced]
 
     def to_json(self) -> dict:
         """``{"added": [...], "verdict": ..., "final": <identify JSON>, "steps": [...]}``."""
         added = [
-            {"effect": s.added.effect, "term": ", ".join(s.added.terms), "coef": s.added.coef,
-             "std": s.added.std, "evidence_gain": s.added.evidence_gain, "physical": s.added.physical,
-             "description": s.added.description, "error_before": s.error_heldout, "error_after": s.error_after,
-             "label": s.added.label, "where": s.added.where, "decision": s.decision.value,
+            {"effect": a.effect, "term": ", ".join(a.terms), "coef": a.coef,
+             "std": a.std, "evidence_gain": a.evidence_gain, "physical": a.physical,
+             "description": a.description, "error_before": s.error_heldout, "error_after": s.error_after,
+             "label": a.label, "where": a.where, "decision": s.decision.value,
              "bayes_factor": _finite(s.bayes_factor), "runner_up": s.runner_up, "confirmation": s.confirmation,
              "separating_experiment": s.separating_experiment, "replaces": s.replaces}
-            for s in self._kept()
+            for s, a in self._kept()
         ]
         steps = [
             {"iteration": s.iteration, "decision": s.decision.value, "verdict": s.verdict, "threshold": s.threshold,

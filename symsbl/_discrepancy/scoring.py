@@ -150,7 +150,7 @@ class Scorer:
                 out.append(0.0)
         return np.array(out)
 
-    def refit(self, candidates) -> list[dict]:
+    def refit(self, candidates) -> list[dict | None]:
         """Each candidate added alone and everything refitted: ``{"gain", "fraction", "model", "coefs", "stds"}``
         (``None`` when the model with it runs away on a record)."""
         engine = Engine(self.model, self.records, self.measured, self.settings, with_candidates(self.model, candidates))
@@ -159,8 +159,8 @@ class Scorer:
         theta = np.zeros(len(engine.positions))
         theta[engine.base] = self.solution.theta[self.engine.base]
         base = engine.fit(engine.base, theta, alpha, warm=self.solution)
-        out = []
-        for c, idx in zip(candidates, positions_of(engine, self.model, candidates)):
+        out: list[dict | None] = []
+        for idx in positions_of(engine, self.model, candidates):
             active = np.concatenate([engine.base, idx]).astype(int)
             try:
                 sol = engine.fit(active, base.theta, np.where(np.isin(np.arange(alpha.size), idx), alpha, base.alpha),
@@ -191,7 +191,7 @@ class Scorer:
         system = model.to_system()
         std = {m: 1.0 / np.sqrt(w) for m, w in zip(self.measured, self.solution.w)}
         rng = np.random.default_rng(seed)
-        out = []
+        out: list[float] = []
         for _ in range(n_bootstrap):
             fakes = []
             for r, x0 in zip(self.records, self.initial_states()):

@@ -31,7 +31,7 @@ weak-form rows (``error="equation"``, a one-step force error).
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import casadi as ca
 import numpy as np
@@ -52,7 +52,7 @@ from .decide import DecisionRule, decide
 from .design import ERROR_MEASURES, Design, heldout_error
 from .inputs import check_record, parse_base, split_record
 from .locate import locate
-from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyReport
+from .results import OUTSIDE_CATALOGUE, Decision, DiscrepancyReport, DiscrepancyStep
 from .scoring import Scorer
 from .search import as_in_final, oe_step
 
@@ -60,6 +60,9 @@ __all__ = ["discrepancy", "Workflow", "EVIDENCE"]
 
 #: What the evidence of an effect is computed from.
 EVIDENCE = ("output-error", "equation-error")
+
+#: The default decision rule (frozen, so one shared instance is safe as an argument default).
+DEFAULT_RULE = DecisionRule()
 
 #: The accepted values of :func:`discrepancy`'s scalar options, declared as data (checked where they enter).
 OPTIONS = {
@@ -111,7 +114,7 @@ def discrepancy(
     search_library: bool = True,
     derivative="weak",
     error: str = "simulation",
-    rule: DecisionRule = DecisionRule(),
+    rule: DecisionRule = DEFAULT_RULE,
     max_iterations: int = 8,
     seed: int = 0,
 ) -> DiscrepancyReport:
@@ -227,7 +230,7 @@ def discrepancy(
             evidence, error = "equation-error", "equation"
             run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured)
             start = run.design.model(run.structure, data)
-    steps, names_added, note, model = [], [], _ending(None), start
+    steps, names_added, note, model = list[DiscrepancyStep](), list[str](), _ending(None), start
     for it in range(1, max_iterations + 1):
         step = (oe_step(run, it, model, rule, seed=seed + it, history=tuple(steps)) if evidence == "output-error"
                 else decide(run, it, model, rule, seed=seed + it))
@@ -236,9 +239,9 @@ def discrepancy(
             note = _ending(step)
             break
         if step.replaces is not None:
-            old = next(s for s in steps if s.added is not None and s.added.label == step.replaces)
+            old, old_added = next((s, s.added) for s in steps if s.added is not None and s.added.label == step.replaces)
             if step.added is not None:  # replaced; an effect removed is not proposed again
-                run.added_keys.discard((old.added.effect, old.added.where))
+                run.added_keys.discard((old_added.effect, old_added.where))
             names_added.remove(_added_name(old))
         if step.added is not None:  # else removed
             names_added.append(_added_name(step))

@@ -107,10 +107,9 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     clock = _Clock()
     record = trajectories[0]
     (y, v), z, u = pairs[0], latent[0], record.input_names[0]
-    periods = split_periods(record.t, record.column(u), record.column(y))
-    periodic = periods is not None
-    if not periodic:
-        periods = whole_record(record.t, record.column(u), record.column(y))
+    split = split_periods(record.t, record.column(u), record.column(y))
+    periodic = split is not None
+    periods = split if split is not None else whole_record(record.t, record.column(u), record.column(y))
     stages = _screen(Spectra(periods, periodic), library, y, v, z, u, clock)
     symbols = {s.name(): s for s in library.variables}
     builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)

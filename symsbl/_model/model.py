@@ -24,8 +24,8 @@ from .._base.errors import ParameterError, expected
 from .._derivatives.kinematics import latent_states
 from .._simulation.ode import OdeSystem
 from .estimates import Equation, FitMethod
-from .path import ModelPath
 from .modelfile import load_model, model_from_json, model_to_json, save_model
+from .path import ModelPath
 
 __all__ = ["IdentifiedModel"]
 

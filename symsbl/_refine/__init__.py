@@ -30,16 +30,16 @@ from .._base.errors import ParameterError, RefineWarning, SimulationError, expec
 from .._base.progress import Progress, stopwatch
 from .._base.rule import DEFAULT as DEFAULT_RULE
 from .._base.rule import SelectionRule
+from .._data.residuals import LEVEL as RESIDUAL_LEVEL
 from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
 from .._symbolic.library import Library
-from .._data.residuals import LEVEL as RESIDUAL_LEVEL
 from .candidates import Rebased, extend, prior
 from .candidates import candidates as propose
 from .diagnostics import as_record, doubts, residual_tests
 from .engine import Engine, Settings, record_horizon, residual_fraction
-from .path import choose_structure
 from .options import MAX_SAMPLES, RefineOptions, as_options
+from .path import choose_structure
 from .problem import check_records, window_plan
 from .result import to_model
 from .rows import design_rows, state_guess
@@ -147,23 +147,24 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     settings = Settings(interpolation=opts.interpolation, substeps=opts.substeps, smooth=opts.smooth, jit=opts.jit,
                         noise=opts.noise, doubts=opts.doubts)
     select = opts.select
+    rebased = None
     if library is not None:
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
-        library = Rebased(library, model)
-    screening = select and library is not None and bool(set(model.state_names) - set(measured))
-    refined, screened = _refine_once(model, used, measured, settings, select, library, screening, rule)
+        rebased = Rebased(library, model)
+    screening = select and rebased is not None and bool(set(model.state_names) - set(measured))
+    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
-        refined, screened = _refine_once(refined, used, measured, settings, select, library, screening, rule)
+        refined, screened = _refine_once(refined, used, measured, settings, select, rebased, screening, rule)
         proposed.append(screened)
         rounds += 1
     info = refined.metadata["refine"]
     stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
     if not stuck and select and rule.model_choice != "evidence":  # the structure that validates
-        n_candidates = len(library) if library is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
+        n_candidates = len(rebased) if rebased is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
         refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates,
                                    info["short_segments"])
     meta = refined.metadata["refine"]
@@ -197,7 +198,8 @@ def _warn(meta: dict) -> None:
         what = " and ".join(w for w, on in (("the record looks closed-loop", meta["closed_loop"]),
                                             ("the measured input is noisy", meta["input_noise"])) if on)
         warnings.warn(RefineWarning(f"output-error refinement: {what}, where output error is biased, so no term was "
-                                    "selected on its evidence (identify reports the equation error's model where every state is measured): "
+                                    "selected on its evidence (identify reports the equation error's model where every "
+                                    "state is measured): "
                                     + "; ".join(meta["doubts"])), stacklevel=3)
         return
     if meta["doubts"]:
@@ -261,6 +263,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
         selected = select and not (adapt and noisy)  # a selection would absorb the input noise's bias
         if selected:
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
+                assert library is not None  # refine() screens only with a library
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
                 screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
                                         sol, engine, library, lambda n: rule.nats_per_term(n, n_candidates))
@@ -272,7 +275,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
         if adapt and doubted and not doubted.biased and sol.length > engine.length0:
             # process noise: segments short enough that no disturbance accumulates in them
             engine.longest = engine.length0
-            sol = engine.fit(engine.base if sol.active is None else sol.active, sol.theta, sol.alpha)
+            sol = engine.fit(sol.active, sol.theta, sol.alpha)
             if selected:  # every kept term clears the penalty on the fit reported
                 sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             tests = residual_tests(engine, sol)

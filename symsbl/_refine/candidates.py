@@ -85,7 +85,7 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
         alike = look_alikes(eq, library, model, Z, values, finite)
         present = set(eq.names)
 
-        def usable(names):
+        def usable(names, present=present):
             return [n for n in dict.fromkeys(names) if n in library and n not in present]
 
         kept = usable([n for t in eq.terms for n in t.alternatives] + list(alike))[:PER_EQUATION]
@@ -151,7 +151,7 @@ def prior(engine: Engine) -> np.ndarray:
     ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
     model = engine.model
     Z = design_rows(model, engine.records, engine.guess)
-    alpha = []
+    alpha: list[float] = []
     for eq, full in zip(model.equations, engine.full.equations):
         if full.fixed:
             continue
@@ -169,7 +169,8 @@ def prior(engine: Engine) -> np.ndarray:
             s = float(np.std(D[:, k]))
             twin = next((j for j, u in enumerate(eq.terms) if t.name in u.alternatives), None)
             s_twin = float(np.std(D[:, twin])) if twin is not None else 0.0
-            if s > 0 and s_twin > 0:  # an indistinguishable alternative: the same prior on its contribution
+            if twin is not None and s > 0 and s_twin > 0:
+                # an indistinguishable alternative: the same prior on its contribution
                 alpha.append(own_alpha(eq.terms[twin]) * (s / s_twin) ** 2)
             else:  # (a constant's twin has no spread to compare with)
                 alpha.append((s / scale) ** 2 if s > 0 and scale > 0 else 1.0)

@@ -53,12 +53,13 @@ def folds(passes: Passes, length0: int) -> Folds | None:
     if len(starts) >= MIN_FOLDS:
         a, b = np.array(starts), np.array(starts) + np.array(lengths)
     else:
-        a, b = [], []
+        lo: list[int] = []
+        hi: list[int] = []
         for s, n in zip(starts, lengths):
             cuts = s + (np.arange(FOLDS + 1) * n) // FOLDS
-            a.extend(cuts[:-1])
-            b.extend(cuts[1:])
-        a, b = np.array(a), np.array(b)
+            lo.extend(cuts[:-1])
+            hi.extend(cuts[1:])
+        a, b = np.array(lo), np.array(hi)
     shortest = int(np.min(b - a))
     n_lead = lead(length0, shortest)
     if shortest < 4 * n_lead or shortest < 64:

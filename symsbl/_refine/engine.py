@@ -102,8 +102,8 @@ class Engine:
         :data:`SPECTRUM_SAMPLES` / 4 samples (a record that sweeps upwards has its highest frequency late)."""
         r = max(self.records, key=lambda tr: tr.n_samples)
         n = SPECTRUM_SAMPLES // 4 if r.n_samples > SPECTRUM_SAMPLES else r.n_samples
-        windows = [WeakForm().resolve(r.t[a:a + n], np.column_stack([r.column(m)[a:a + n] for m in self.measured]))
-                   .window for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]  # 0.5 / f_hi
+        windows = [_window(r.t[a:a + n], np.column_stack([r.column(m)[a:a + n] for m in self.measured]))
+                   for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]  # 0.5 / f_hi
         return int(max(64, 8 * min(windows)))
 
     def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,
@@ -122,6 +122,13 @@ class Engine:
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a state error past doubles is an infinite growth
+def _window(t: np.ndarray, X: np.ndarray) -> int:
+    """The weak form's automatic window on ``(t, X)``, in sample intervals."""
+    window = WeakForm().resolve(t, X).window
+    assert window is not None  # resolve() always fixes an automatic window from the data
+    return window
+
+
 def record_horizon(engine: Engine, sol: Solution) -> int | None:
     """Samples within which ``sol``'s model amplifies a state error :data:`PHI_STOP`-fold, when that is shorter
     than the longest record (a hypersensitive record); None otherwise. The segments' growth only suggests it (it
@@ -139,7 +146,8 @@ def record_horizon(engine: Engine, sol: Solution) -> int | None:
 
 def residual_fraction(engine: Engine, sol: Solution) -> float:
     """``N_eff / N`` of the output-error residual at ``sol`` (of its innovations, with a noise model; the
-    smallest over the measured channels; 1 for white residuals), from its autocorrelation (:func:`symsbl._data.residuals.effective_fraction`)."""
+    smallest over the measured channels; 1 for white residuals), from its autocorrelation
+    (:func:`symsbl._data.residuals.effective_fraction`)."""
     passes = engine.passes
     n = passes.records.n_total
     seg = passes.segments(sol.starts)

@@ -27,6 +27,7 @@ from .engine import Engine, Settings, residual_fraction
 from .laplace import reduce_model
 from .result import to_model
 from .selection import _every_term_clears
+from .solver import Solution
 
 __all__ = ["choose_structure", "MAX_PATH"]
 
@@ -52,7 +53,7 @@ def _backward(engine: Engine, sol, alpha: np.ndarray):
     """The next structure below ``sol``: the term whose removal Bayesian model reduction says costs least, refitted
     (None when every fitted equation is down to one term, or the refit runs away)."""
     active = [int(k) for k in sol.active]
-    per_equation = {}
+    per_equation: dict[int, list[int]] = {}
     for k in active:
         per_equation.setdefault(engine.positions[k][0], []).append(k)
     removable = [n for n, k in enumerate(active) if len(per_equation[engine.positions[k][0]]) > 1]
@@ -60,7 +61,7 @@ def _backward(engine: Engine, sol, alpha: np.ndarray):
         return None
     a = sol.alpha[sol.active]
     gains = {n: reduce_model(sol.posterior, a, [n])[0] for n in removable}
-    off = max(gains, key=gains.get)
+    off = max(gains, key=gains.__getitem__)
     _, mean, _ = reduce_model(sol.posterior, a, [off])
     keep = [k for n, k in enumerate(active) if n != off]
     start = np.zeros_like(sol.theta)
@@ -149,7 +150,8 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
 def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
     """``(solution, source, fold errors)`` of the candidates and of the backward path from the union, which stops
     descending once a structure's error is :data:`STOP_RATIO` times the best (simpler ones only lose more)."""
-    seen, entries = {}, []
+    seen: dict[frozenset[int], int] = {}
+    entries: list[tuple[Solution, str, np.ndarray]] = []
 
     def add(sol, source: str) -> float:
         key = frozenset(int(k) for k in sol.active)

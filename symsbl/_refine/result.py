@@ -82,7 +82,7 @@ def _joint(model: IdentifiedModel, free_order: list, cov: np.ndarray) -> np.ndar
             k += 1 if free else 0
     n = len(rows)
     out = np.zeros((n, n))
-    free = [p for p, r in enumerate(rows) if r is not None]
-    src = [rows[p] for p in free]
-    out[np.ix_(free, free)] = cov[np.ix_(src, src)]
+    fitted = [p for p, r in enumerate(rows) if r is not None]
+    src = [r for r in rows if r is not None]
+    out[np.ix_(fitted, fitted)] = cov[np.ix_(src, src)]
     return out

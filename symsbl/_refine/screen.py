@@ -121,7 +121,7 @@ def screen_terms(engine_of, model, records, solution, base_engine, library, thre
     others = np.setdiff1d(np.arange(theta.size), engine.base)
     found = gains(S, gr, engine.base, solution.alpha[base_engine.base], others)
     limit = threshold(int(passes.n_obs.sum()))
-    out = {}
+    out: dict[str, list[str]] = {}
     for k, gain in sorted(zip(others, found), key=lambda kv: -kv[1]):
         i, j = engine.positions[k]
         eq = engine.full.equations[i]

@@ -130,8 +130,8 @@ def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Fun
     args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) if i in (0, 3)
             else ca.MX.sym(step.name_in(i), step.size1_in(i), chunk) for i in range(step.n_in())]
     call = [args[0], args[1], args[2], ca.repmat(args[3], 1, chunk), *args[4:]]
-    outs = acc(*call)
-    outs = list(outs) if isinstance(outs, (list, tuple)) else [outs]
+    res = acc(*call)
+    outs = list(res) if isinstance(res, (list, tuple)) else [res]
     wrapper = ca.Function(f"{step.name()}_chunk", args, outs, step.name_in(), step.name_out())
     if jit is False:  # building the map of a large step takes seconds: kept for the structure's next records
         _VM_CHUNKS[key] = wrapper
@@ -215,7 +215,9 @@ class Blocks:
 
     def where(self, mask: np.ndarray, other: Blocks) -> Blocks:
         """The blocks of ``other`` for the segments in ``mask``, these elsewhere."""
-        pick = lambda a, b: np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)  # noqa: E731
+        def pick(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+
         return Blocks(pick(self.H, other.H), pick(self.g, other.g), pick(self.rr, other.rr),
                       pick(self.end_S, other.end_S), pick(self.n_kept, other.n_kept))
 
@@ -235,7 +237,7 @@ class Passes:
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
         self._sens = _chunk(step, jit, records.n_total, self.chunk)
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
-        self._state = None  # compiled when a plain simulation is asked for
+        self._state: ca.Function | None = None  # compiled when a plain simulation is asked for
         self.jit = jit
         n, C = records.n_total, CHUNK
         self.n_pad = -(-n // C) * C
@@ -255,7 +257,7 @@ class Passes:
     # -- segments ------------------------------------------------------------------------------
     def segment_starts(self, length: int) -> np.ndarray:
         """Each record cut into ``round(n / length) >= 1`` segments of ``length`` samples (the last one longer)."""
-        starts = []
+        starts: list[int] = []
         for s, n in zip(self.records.starts, self.records.lengths):
             k = max(1, int(round(n / length)))
             starts.extend(int(s) + length * np.arange(k))
@@ -318,10 +320,10 @@ class Passes:
         kept = np.zeros((K, ny))
         residual = np.empty((self.records.n_total, ny))
         end_S = np.zeros((K, ns, nx))
-        buf.set_arg(3, memoryview(theta))
-        buf.set_res(0, memoryview(zout))
-        buf.set_res(1, memoryview(hout))
-        buf.set_res(2, memoryview(jout))
+        buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
+        buf.set_res(0, _view(zout))  # type: ignore[call-arg]
+        buf.set_res(1, _view(hout))  # type: ignore[call-arg]
+        buf.set_res(2, _view(jout))  # type: ignore[call-arg]
         with one_blas_thread():
             self._chunks(buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual)
         return Blocks(H, g, rr, end_S, kept, residual)
@@ -337,9 +339,9 @@ class Passes:
         lag_r = np.zeros((order, ny))
         lag_j = np.zeros((order, ny, ns))
         for c, a in enumerate(range(0, self.n_pad, C)):
-            buf.set_arg(0, memoryview(z0))
+            buf.set_arg(0, _view(z0))
             for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.UN)):
-                buf.set_arg(i, memoryview(arr[a:a + C]))
+                buf.set_arg(i, _view(arr[a:a + C]))
             call()
             z0[:] = zout[-1]
             n = min(C, self.records.n_total - a)
@@ -379,15 +381,21 @@ class Passes:
             self._state = _chunk(state_step(self.param, self.records.substeps), self.jit, self.records.n_total)
         buf, call = self._state.buffer()
         x0 = np.zeros(nx)
-        buf.set_arg(3, memoryview(theta))
+        buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
         for a in range(0, self.n_pad, C):
-            buf.set_arg(0, memoryview(x0))
+            buf.set_arg(0, _view(x0))  # type: ignore[call-arg]
             for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start)):
-                buf.set_arg(i, memoryview(arr[a:a + C]))
-            buf.set_res(0, memoryview(out[a:a + C]))
+                buf.set_arg(i, _view(arr[a:a + C]))  # type: ignore[call-arg]
+            buf.set_res(0, _view(out[a:a + C]))  # type: ignore[call-arg]
             call()
             x0 = out[a + C - 1].copy()
         return out[:self.records.n_total]
+
+
+def _view(a: np.ndarray) -> memoryview:
+    """``a``'s memory, which a CasADi ``FunctionBuffer`` reads or writes in place (CasADi's stubs list the C++
+    ``size`` argument of ``set_arg``/``set_res`` that the Python binding takes from this buffer)."""
+    return memoryview(a)  # type: ignore[arg-type]  # numpy's stubs give ndarray no __buffer__ before Python 3.12
 
 
 def _runs(valid: np.ndarray) -> np.ndarray:
@@ -414,7 +422,7 @@ def _accumulate(H, g, rr, piece_starts, piece_segment, n: int, E: np.ndarray, EJ
     np.add.at(rr, piece_segment, rr_chunk)
     if len(piece_starts) == 1 or lengths.max() * len(piece_starts) * ns * ns * ny > _PRODUCT:
         for p0, length, k in zip(piece_starts, lengths, piece_segment):
-            A = EJ[p0:p0 + length].reshape(-1, ns)
+            A: np.ndarray = EJ[p0:p0 + length].reshape(-1, ns)
             H[k] += A.T @ A
             g[k] += A.T @ E[p0:p0 + length].reshape(-1)
         return
@@ -424,7 +432,7 @@ def _accumulate(H, g, rr, piece_starts, piece_segment, n: int, E: np.ndarray, EJ
     offset = np.arange(n) - np.repeat(piece_starts, lengths)
     A = np.zeros((len(piece_starts), L, ny, ns))
     A[piece, offset] = EJ
-    b = np.zeros((len(piece_starts), L, ny))
+    b: np.ndarray = np.zeros((len(piece_starts), L, ny))
     b[piece, offset] = E
     A = A.reshape(len(piece_starts), L * ny, ns)
     b = b.reshape(len(piece_starts), L * ny)

@@ -14,6 +14,7 @@ records are tried at once and kept when they simulate the data about as well as 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -63,6 +64,12 @@ class Iterate:
     def order(self) -> int:
         return 0 if self.ar is None else int(self.ar.shape[1])
 
+    @property
+    def made(self) -> Blocks:
+        """The blocks of the pass made at this iterate (see :meth:`evaluated`)."""
+        assert self.blocks is not None  # every step evaluates an iterate before it reads the pass
+        return self.blocks
+
     def evaluated(self, passes: Passes) -> tuple[Iterate, int]:
         """This iterate with its pass made (and the number of passes that took: 0 or 1)."""
         if self.blocks is not None:
@@ -84,9 +91,10 @@ class Solution:
     alpha: np.ndarray
     posterior: Posterior
     H: np.ndarray
+    #: The indices of the coefficients fitted (the others held where they started).
+    active: np.ndarray
     stages: list = field(default_factory=list)
     n_pass: int = 0
-    active: np.ndarray | None = None
     #: The nats per term selection asked for; refits' evidence for terms the posterior put below it (by index).
     penalty: float | None = None
     confirmed: dict = field(default_factory=dict)
@@ -172,11 +180,11 @@ def lm(passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int 
     precisions and segments; returns the iterate reached (with its pass) and the number of passes made."""
     it, n_pass = it.evaluated(passes)
     npar = it.theta.size
-    E = _objective(it.blocks, it.theta, alpha, active)
+    E = _objective(it.made, it.theta, alpha, active)
     if not np.isfinite(E):
         return it, n_pass
     for _ in range(max_iter):
-        Hs, gs = restrict(it.blocks.H, it.blocks.g, active, npar)
+        Hs, gs = restrict(it.made.H, it.made.g, active, npar)
         try:
             step, dX, predicted = damped_step(Hs, gs, it.theta[active], alpha[active], damping.lam)
         except np.linalg.LinAlgError:
@@ -190,7 +198,7 @@ def lm(passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int 
         dth[active] = step
         trial, _ = replace(it, theta=it.theta + dth, X0=it.X0 + dX, blocks=None).evaluated(passes)
         n_pass += 1
-        E_trial = _objective(trial.blocks, trial.theta, alpha, active)
+        E_trial = _objective(trial.made, trial.theta, alpha, active)
         taken, rho = accept(E, E_trial, predicted)
         if taken:
             E_old, E, it = E, E_trial, trial
@@ -214,7 +222,7 @@ def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.
     iterate (with its pass) and the number of passes made."""
     npar = it.theta.size
     it, n_pass = it.evaluated(passes)
-    X0, blocks = it.X0, it.blocks
+    X0, blocks = it.X0, it.made
     cost = 0.5 * blocks.rr.sum(1)
     shrink = np.ones(len(X0))
     for _ in range(sweeps):
@@ -241,10 +249,10 @@ def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.
 def _reweight(passes: Passes, it: Iterate, n_free: int) -> np.ndarray:
     """New noise precisions from the (whitened) residuals, the degrees of freedom shared in proportion to the
     samples."""
-    n_kept = it.blocks.n_kept.sum(0)
+    n_kept = it.made.n_kept.sum(0)
     dof = n_free + len(it.seg) * passes.layout["nx"]
     keep = 1.0 - dof / max(n_kept.sum(), 1)
-    ssr = it.blocks.rr.sum(0) / it.w
+    ssr = it.made.rr.sum(0) / it.w
     return n_kept * max(keep, 0.5) / np.maximum(ssr, 1e-300)
 
 
@@ -253,9 +261,10 @@ def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
     choose it by BIC per channel; channels padded with zeros to the largest order); None for white noise."""
     if order != "auto" and int(order) == 0:
         return None
-    if it.blocks.residual is None:  # blocks merged from two passes (initial states): the residual of one pass
+    if it.made.residual is None:  # blocks merged from two passes (initial states): the residual of one pass
         it, _ = replace(it, blocks=None).evaluated(passes)
-    R, since = it.blocks.residual, it.seg.since
+    R, since = it.made.residual, it.seg.since
+    assert R is not None  # the blocks of a single pass carry its residual
     run = passes.valid_runs[:R.shape[0]]
     ny = R.shape[1]
     orders = [choose_order(R[:, c], since, run[:, c]) if order == "auto" else int(order) for c in range(ny)]
@@ -307,7 +316,7 @@ def _same_ar(a: np.ndarray | None, b: np.ndarray | None, tol: float = 0.01) -> b
 def _longest(length: int, phi: float) -> int:
     """The longest segment whose state-transition growth stays below :data:`PHI_STOP`, if it grows
     exponentially from ``phi`` over ``length`` samples (no limit for a contracting system)."""
-    if phi <= np.e:
+    if phi <= math.e:
         return np.iinfo(np.int64).max
     return int(length * np.log(PHI_STOP) / np.log(phi))
 
@@ -333,9 +342,9 @@ def _growth(end_S, npar: int, scale: np.ndarray) -> float:
 def _state_scale(guess: np.ndarray, X0: np.ndarray) -> np.ndarray:
     """Each state's typical size: RMS of its guess, or (a latent state, no guess) of the segments' initial
     states, else 1."""
-    scale = np.sqrt(np.mean(guess**2, axis=0))
+    rms: np.ndarray = np.sqrt(np.mean(guess**2, axis=0))
     start = np.sqrt(np.mean(X0**2, axis=0))
-    scale = np.where(scale > 0, scale, start)
+    scale: np.ndarray = np.where(rms > 0, rms, start)
     return np.where(scale > 0, scale, 1.0)
 
 
@@ -360,10 +369,10 @@ def _jump(passes: Passes, it: Iterate, full: int, scale: np.ndarray) -> tuple[bo
     state-transition growth below :data:`PHI_STOP`. Returns whether they are kept, the trial iterate (with
     its pass) and the growth over the whole segments."""
     trial, _ = _resegment(passes, it, passes.segment_starts(full)).evaluated(passes)
-    phi = _growth(trial.blocks.end_S, it.theta.size, scale)
-    cost = it.blocks.cost
+    phi = _growth(trial.made.end_S, it.theta.size, scale)
+    cost = it.made.cost
     allowance = 0.5 * passes.layout["nx"] * (len(it.seg) - len(trial.seg)) + JUMP * cost
-    kept = bool(np.all(np.isfinite(trial.blocks.rr)) and trial.blocks.cost <= cost + allowance and phi <= PHI_STOP)
+    kept = bool(np.all(np.isfinite(trial.made.rr)) and trial.made.cost <= cost + allowance and phi <= PHI_STOP)
     return kept, trial, phi
 
 
@@ -407,7 +416,7 @@ def _prior_precisions(H, theta, alpha, active):
 
 
 def _stage(length: int, it: Iterate, n: int, phi: float, **extra) -> dict:
-    return dict(length=length, segments=len(it.seg), passes=n, growth=phi, cost=it.blocks.cost, **extra)
+    return dict(length=length, segments=len(it.seg), passes=n, growth=phi, cost=it.made.cost, **extra)
 
 
 def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int, full: int, growth: int,
@@ -426,7 +435,7 @@ def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int
         policy = noise if (final or noise != "auto") else it.order
         it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy)
         n_pass += n
-        phi = _growth(it.blocks.end_S, it.theta.size, scale)
+        phi = _growth(it.made.end_S, it.theta.size, scale)
         stages.append(_stage(length, it, n, phi))
         trial = None
         if phi > PHI_STOP and previous is not None:
@@ -511,19 +520,20 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto")
         n_pass += n
         stages.append(_stage(length, it, n, float("nan"), noise=it.order))
-    _require_finite(it.theta, it.blocks.H)
+    _require_finite(it.theta, it.made.H)
     if mackay:
-        alpha = _prior_precisions(it.blocks.H, it.theta, alpha, active)
+        alpha = _prior_precisions(it.made.H, it.theta, alpha, active)
         # the blocks at the optimum do not depend on the prior: the pass made there is the first of this fit
         it, n = lm(passes, it, alpha, active, tol=tol)
         n_pass += n
-    Hs, _ = restrict(it.blocks.H, None, active, it.theta.size)
-    cost = _objective(it.blocks, it.theta, alpha, active)
-    n_kept = it.blocks.n_kept.sum(0)
+    Hs, _ = restrict(it.made.H, None, active, it.theta.size)
+    cost = _objective(it.made, it.theta, alpha, active)
+    n_kept = it.made.n_kept.sum(0)
     post = posterior(Hs, it.theta[active], alpha[active], cost, n_kept, it.w)
-    if it.order:  # the noise model's own Occam factor: 1/2 log n a coefficient (BIC), as its order was chosen
+    if it.ar is not None and it.order:
+        # the noise model's own Occam factor: 1/2 log n a coefficient (BIC), as its order was chosen
         occam = 0.5 * float(np.sum(np.count_nonzero(it.ar, axis=1) * np.log(np.maximum(n_kept, 2))))
         post = replace(post, log_evidence=post.log_evidence - occam)
     return Solution(theta=it.theta, X0=it.X0, starts=it.seg.starts.copy(), length=length, cost=float(cost),
-                    ssr=it.blocks.rr.sum(0) / it.w, w=it.w.copy(), alpha=alpha, posterior=post, H=it.blocks.H,
+                    ssr=it.made.rr.sum(0) / it.w, w=it.w.copy(), alpha=alpha, posterior=post, H=it.made.H,
                     stages=stages, n_pass=n_pass, active=active, ar=it.ar, n_kept=n_kept)

@@ -110,5 +110,5 @@ def validated_equations(model: IdentifiedModel, problem: RegressionStats, folds:
                                            int(n_obs), alternatives=[by_name[names[i]].alternatives for i in c],
                                            runners_up=eq.runners_up))
     entries.sort(key=lambda e: (e.terms[0][0], e.n_terms))
-    path = ModelPath(tuple(entries), reasons[0] if reasons else "")
-    return dataclasses.replace(model, equations=tuple(equations)), path
+    chosen_path = ModelPath(tuple(entries), reasons[0] if reasons else "")
+    return dataclasses.replace(model, equations=tuple(equations)), chosen_path
