@@ -18,7 +18,7 @@ import dataclasses
 
 import numpy as np
 
-from ._base.errors import ParameterError, expected
+from ._base.errors import DataError, ParameterError, expected
 from ._base.rule import SelectionRule
 from ._data.trajectory import Trajectory, noise_levels
 from ._derivatives.kinematics import complete_states, latent_states, parse_kinematics
@@ -153,13 +153,18 @@ def _reported(start: IdentifiedModel, refined: IdentifiedModel, records, problem
     if not doubted or estimated:  # a velocity estimated by a smoothing derivative would bias the equation error
         return dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
     template = RVM(**dict((rvm or RVM()).get_params(), prune_nats=rule.penalty))
-    folds = [regression_stats(piece, problem.library, derivative=problem.derivative).stats
-             for piece in _folds(records)]
+    alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
+    used = dict(used, used="equation-error", output_error=alternative)
+    try:
+        folds = [regression_stats(piece, problem.library, derivative=problem.derivative).stats
+                 for piece in _folds(records)]
+    except DataError as error:  # folds too short for the library: the equation error's own selection stands
+        meta = dict(start.metadata, refine=refined.metadata.get("refine", {}),
+                    estimator=dict(used, validated=f"no: {error}"))
+        return dataclasses.replace(start, metadata=meta)
     again = regression_stats([_noisier(r) for r in records], problem.library, derivative=problem.derivative)
     model, path = validated_equations(start, problem, folds, template, rule, again.stats)
-    alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
-    meta = dict(start.metadata, refine=refined.metadata.get("refine", {}),
-                estimator=dict(used, used="equation-error", output_error=alternative))
+    meta = dict(start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated="yes"))
     return dataclasses.replace(model, metadata=meta, path=path)
 
 

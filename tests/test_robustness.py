@@ -86,6 +86,7 @@ def _pendulum_record(rms: float, seed: int):
                     inputs=Multisine(rms=rms, f_min=0.1, f_max=2.0, seed=seed, period=20.0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(5))
 def test_pendulum_sine_wins_over_polynomial_look_alikes(seed):
     """Swings of 0.95-1.6 rad, where sin(x1) and x1 - x1**3/6 differ by about 1 %: the Eq. 21
@@ -170,10 +171,13 @@ def test_cubic_stiffness_with_coulomb_friction(kc, forcing):
 def test_cubic_stiffness_with_strong_coulomb_friction_under_a_sine():
     """kc = 10 N under the 10 Hz sine, noise seed 17: the first RVM pass settles among look-alikes
     (x1|x1|, x1**3|x1|, sign(x1), ...; penalised log evidence -78.5 against -73.5 for the truth);
-    the multi-start support search must still reach the true equations."""
+    the multi-start support search must still reach the true equations. The narrow ``tanh`` fitted for
+    ``sign`` leaves innovations the Ljung-Box test sees (0.2 % of their variance predictable): the refinement says
+    so, and the equation error's model is reported."""
     system = duffing_coulomb(10.0)
     clean = _duffing_coulomb_record(10.0, "sine", 0)
-    model = identify(clean.with_noise(0.004, seed=17), paper(system.states, system.inputs, degree=5))
+    with pytest.warns(RefineWarning, match="segments of at most"):
+        model = identify(clean.with_noise(0.004, seed=17), paper(system.states, system.inputs, degree=5))
     truth = compare_to_truth(model, system, clean)
     assert truth.exact_support, (truth.missing, truth.spurious, str(model))
 
@@ -189,6 +193,7 @@ def free_duffing(c=20.0, k=1e4, k3=1e9) -> OdeSystem:
                      parameters=(pc, pk, pk3), parameter_values=(c, k, k3), name="free_duffing")
 
 
+@pytest.mark.slow
 def test_free_decay_without_input():
     """Released from x1 = 10 mm at rest (k3 x1**3 is then ten times k x1), 0.3 s at 32768 Hz
     (seven and a half cycles, amplitude down to 1.3 mm), 0.4 % noise, seeds 0-4: the library has no
@@ -213,6 +218,7 @@ def test_free_decay_without_input():
 # --- Lorenz with a polynomial library -----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_lorenz_with_polynomial_library():
     """Lorenz (sigma 10, rho 28, beta 8/3) from (-8, 7, 27): 10 s at 1 kHz (the orbit turns at
     about 1.35 Hz, so ~740 samples per turn and a dozen turns over both wings; x, y within
@@ -289,6 +295,7 @@ def _linear_at_five_percent(derivative):
     return compare_to_truth(model, system, clean), model
 
 
+@pytest.mark.slow
 def test_five_percent_noise_linear_oscillator():
     """The linear oscillator at 5 % noise with default options should be recovered exactly."""
     truth, model = _linear_at_five_percent("weak")
