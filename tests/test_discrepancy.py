@@ -70,6 +70,7 @@ HIDDEN = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(HIDDEN))
 def test_hidden_effect_is_named_fitted_and_cuts_the_heldout_error(name):
     seed = 1
@@ -111,6 +112,7 @@ def test_nothing_missing_is_reported_in_at_least_95_percent_of_seeds(case):
     assert not alarms, alarms
 
 
+@pytest.mark.slow
 def test_two_hidden_effects_are_found_in_two_iterations():
     system = oscillator(lambda x, v: 1.0 * ca.sign(v) + 3.8e5 * x**3)
     train, held = records(system, Sine(30.0, 14.0), seed=3)
@@ -124,6 +126,7 @@ def test_two_hidden_effects_are_found_in_two_iterations():
     assert report.steps[-1].error_heldout < 1.1 * NOISE < 1.25 * NOISE < report.steps[0].error_heldout
 
 
+@pytest.mark.slow
 def test_a_gap_between_grid_points_is_refined_to_its_value_and_nothing_makes_up_for_it():
     """m 2.5, c 4, k 3e4, a 9e3 N/m clearance at 4 mm (0.107 of the training amplitude, between the 0.1 and 0.2
     grid points), 1 kHz, 1 % noise, displacement and velocity. The shape refinement's rounds bring the gap within
@@ -142,6 +145,7 @@ def test_a_gap_between_grid_points_is_refined_to_its_value_and_nothing_makes_up_
     assert report.steps[-1].decision == "nothing missing"
 
 
+@pytest.mark.slow
 def test_a_user_effect_is_found_by_name():
     van_der_pol = Effect("van_der_pol", "amplitude-dependent damping x^2 v", "damping", lambda x, v: x**2 * v)
     effects = catalogue([van_der_pol])
@@ -151,6 +155,7 @@ def test_a_user_effect_is_found_by_name():
     assert report.added[0].coef == pytest.approx(-2e4, rel=0.1)
 
 
+@pytest.mark.slow
 def test_report_text_json_and_localisation():
     force, _, held_input = HIDDEN["coulomb_friction"]
     train, held = records(oscillator(force), held_input, seed=5)
@@ -225,6 +230,7 @@ def test_emps_full_record_with_the_pulses_record_held_out():
 
 
 # ------------------------------------------------------------------------------ command line
+@pytest.mark.slow
 def test_cli_discrepancy_writes_the_json_contract_and_the_figure(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     force, _, held_input = HIDDEN["coulomb_friction"]
@@ -372,6 +378,7 @@ def multisine_records(system, seed, noise=0.01, train_s=4.0):
     return train, held, train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 1)
 
 
+@pytest.mark.slow
 def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
     fc = 0.005 * FRMS * np.sqrt(2)  # 0.5 % of the force amplitude
     clean_train, clean_held, train, held = multisine_records(light_oscillator(lambda x, v: fc * ca.sign(v)), seed=3)
@@ -393,6 +400,7 @@ def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
     assert report.steps[-1].decision == "nothing missing" and report.steps[-1].residual_ratio < 1.2
 
 
+@pytest.mark.slow
 def test_a_term_outside_the_catalogue_is_reported_symbolically():
     X = 6e-3  # about the displacement amplitude
     kq = 0.05 * FRMS * np.sqrt(2) / X**2  # 5 % of the force at the peaks
@@ -419,6 +427,7 @@ def chain(extra_on):
     return OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "chain"), -k3 / (m1 if extra_on == 1 else m2)
 
 
+@pytest.mark.slow
 def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path, capsys):
     system, true = chain(2)
     _, clean_held, train, held = multisine_records(system, seed=5, train_s=3.0)
@@ -440,6 +449,7 @@ def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path
     assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
 
 
+@pytest.mark.slow
 def test_a_displacement_only_record_names_the_hidden_effect_through_the_command_line(tmp_path, capsys):
     """Only x1 recorded (the velocity of x1:x2 absent from both files): the velocity is estimated for the
     start, the output error fits x1 alone, and the hidden cubic spring is named with its coefficient; the
@@ -480,6 +490,7 @@ def test_an_effect_between_two_masses_names_its_term_once():
     assert c.terms == ("sign(v1 - v2)",)
 
 
+@pytest.mark.slow
 def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
     from scipy.signal import butter, sosfiltfilt
 
@@ -551,6 +562,7 @@ def test_cli_lists_the_catalogue_and_reads_user_effects(tmp_path, capsys):
     assert "DATA: expected a value (or --list-effects alone), received none" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
     # strongly hardening (the cubic force is 0.7x the linear one at the peak) with Coulomb friction of 3.5 % of the
     # force: the greedy path passes through look-alikes (a clearance, x|x|, a v x^2 standing in for the friction);

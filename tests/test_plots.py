@@ -192,6 +192,7 @@ def friction_case():
     return report, held
 
 
+@pytest.mark.slow
 def test_discrepancy_figure_panels(friction_case, tmp_path):
     report, held = friction_case
     assert [a.effect for a in report.added] == ["coulomb_friction"]

@@ -57,6 +57,7 @@ def test_process_noise_is_named_and_the_equation_error_reported():
     _check_truth(model, HARDENING.truth())
 
 
+@pytest.mark.slow
 def test_displacement_only_process_noise_keeps_output_error_on_short_segments():
     """The same record with the position only: the equation error would rest on a smoothed velocity, so the
     output error's model, fitted on short segments, is reported, with the true support."""

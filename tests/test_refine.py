@@ -384,6 +384,7 @@ def test_a_two_dof_chain_with_a_cubic_spring():
     _check(oe, truth, check)
 
 
+@pytest.mark.slow
 def test_a_displacement_only_chain_finds_the_coupling_damping_the_equation_error_lost():
     """Only x1 and x2 recorded, 500 Hz, 1 % noise, the Eq. 21 library (146 terms): the equation error misses
     the small damping between the masses, and the output-error fit of its structure drifts every coefficient
@@ -435,6 +436,7 @@ def test_van_der_pol_on_its_limit_cycle():
     _check(oe, symsbl.compare_to_truth(oe, system), symsbl.validate_model(oe, held))
 
 
+@pytest.mark.slow
 def test_bouc_wen_of_order_three_with_the_hysteretic_state_measured():
     system = symsbl.systems.bouc_wen(A=5000.0, n=3, a=2.0, b=-1.0, m=1.5, c=15.0, k=8e3)
     _, oe, truth, check = _scenario(
@@ -458,6 +460,7 @@ def test_a_displacement_only_duffing():
     assert oe.equation("x1").fixed and oe.equation("x1").names == ["x2"]
 
 
+@pytest.mark.slow
 def test_a_displacement_only_record_with_light_damping_finds_the_term_the_equation_error_lost():
     """m = 3, c = 0.8 (1.5 % of critical), k = 250, quadratic drag 5 v|v|, 500 Hz, only x1 recorded: the
     velocity differentiated from x1 hides the small viscous term from the equation error (which puts its
@@ -490,6 +493,7 @@ def test_a_free_decay_recorded_by_displacement_only():
     assert model.metadata["refine"]["rounds"] >= 2
 
 
+@pytest.mark.slow
 def test_a_look_alike_the_equation_error_preferred_is_swapped_for_the_true_term():
     """Displacement only, a lightly damped hardening oscillator (m = 0.9, c = 1.5, k = 6e3, k3 = 8e7,
     1-30 Hz at 1 kHz, 1.5 % noise): the equation error on the estimated velocity can rank sin(x2) over x2
@@ -516,6 +520,7 @@ def test_a_look_alike_the_equation_error_preferred_is_swapped_for_the_true_term(
     assert truth.max_error() < 0.005, truth.relative_error
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [2, 6, 7])
 def test_a_drag_oscillator_keeps_its_viscous_term_against_sign_and_sine_look_alikes(seed):
     """2 x'' + 2 x' + 5 x'|x'| + 8e3 x = F, 4096 Hz, 3 s, 1 % noise, a 2-30 Hz multisine (velocities up to about

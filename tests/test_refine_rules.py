@@ -69,6 +69,7 @@ def test_a_damping_shared_by_look_alikes_keeps_only_terms_that_clear_the_penalty
     assert v.coef("v") == pytest.approx(-1.5 / 0.9, rel=0.01)
 
 
+@pytest.mark.slow
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(names=st.lists(st.sampled_from(sorted(LOOK_ALIKES)), min_size=2, max_size=4, unique=True))
 def test_no_kept_term_falls_short_of_the_penalty_in_a_fuzz_of_look_alike_groups(light, names):
@@ -111,6 +112,7 @@ def chaotic(tmp_path_factory):
     return model, held, d
 
 
+@pytest.mark.slow
 def test_a_hypersensitive_record_is_reported_by_identify(chaotic):
     model, _, _ = chaotic
     meta = model.metadata["refine"]
@@ -132,6 +134,7 @@ def test_a_hypersensitive_record_is_validated_over_short_horizons(chaotic, capsy
     assert doc["horizon"] == pytest.approx(result.horizon) and doc["short_nrmse"]["x1"] < 0.01
 
 
+@pytest.mark.slow
 def test_the_discrepancy_workflow_says_a_model_is_badly_wrong_when_a_hypersensitive_record_cannot_tell_why():
     """A linear model of the chaotic-like record (x1^3 missing): the cubic stiffness gains 55 nats but predicts
     the held-out folds worse (they diverge whatever the model); "no held-out gain" blamed the candidate."""

@@ -276,6 +276,7 @@ def test_scikit_learn_takes_it_as_a_regressor():
     np.testing.assert_allclose(both.predict(X)[:, 0], single.predict(X), rtol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n", [20_000, 200_000])
 def test_exact_support_over_20_seeds_where_plain_sb2_over_selects(n):
     spurious_plain = 0
