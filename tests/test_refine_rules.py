@@ -145,3 +145,17 @@ def test_the_discrepancy_workflow_says_a_model_is_badly_wrong_when_a_hypersensit
     assert report.verdict.startswith("the model is badly wrong (its residual stands at ")
     assert "the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold within" \
         in report.verdict
+
+
+def test_the_validated_choice_takes_a_richer_structure_only_when_every_fold_says_so():
+    """The model-path rule on hand-made fold errors: the simplest structure stays when a richer one gains less than
+    a paired standard error; a richer one that gains on every fold, by more than a tenth of the way to the noise
+    floor, is taken; a structure with a fold whose simulation ran away (the demo's quadratic damping without its
+    x2**2 term: 3e24 on one fold, which tied its paired standard error) is never chosen."""
+    rule = SelectionRule()
+    noisy = np.array([[0.0102, 0.0098, 0.0101], [0.0101, 0.0099, 0.0100]])  # within noise of each other
+    assert rule.choose([3, 4], [10.0, 11.0], noisy, floor=0.0099)[0] == 0
+    clear = np.array([[0.0300, 0.0280, 0.0310], [0.0101, 0.0099, 0.0100]])
+    assert rule.choose([3, 4], [10.0, 11.0], clear, floor=0.0099)[0] == 1
+    ran_away = np.array([[0.0040, 50.0, 0.0040], [0.0041, 0.0041, 0.0041]])
+    assert rule.choose([4, 5], [1.0, 2.0], ran_away, floor=0.0040)[0] == 1

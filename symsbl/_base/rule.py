@@ -60,6 +60,9 @@ def multiplicity(n_choices: int) -> float:
     return math.log(n_choices) if n_choices > 1 else 0.0
 
 
+#: A cross-validated error (RMS over each channel's spread) above this is a simulation that ran away.
+RAN_AWAY = 10.0
+
 #: How a structure is chosen from the model path (see :attr:`SelectionRule.model_choice`).
 MODEL_CHOICES = ("validated", "evidence")
 
@@ -201,6 +204,7 @@ class SelectionRule:
         sizes, objectives = np.asarray(sizes), np.asarray(objectives, dtype=float)
         by_evidence = int(np.argmax(np.where(np.isfinite(objectives), objectives, -np.inf)))
         E = np.asarray(fold_errors, dtype=float)
+        E = np.where(E > RAN_AWAY, np.inf, E)  # a fold simulated past ten spreads ran away: the structure fails it
         finite = np.all(np.isfinite(E), axis=1) if E.size else np.zeros(0, bool)
         if self.model_choice == "evidence" or not np.any(finite):
             return by_evidence, "the best penalised evidence"
