@@ -28,7 +28,8 @@ import sympy as sp
 from .checks import choice, number
 from .errors import ParameterError, expected
 
-__all__ = ["SelectionRule", "PENALTIES", "MODEL_CHOICES", "complexity", "nats_per_term", "multiplicity", "paired_se"]
+__all__ = ["SelectionRule", "PENALTIES", "MODEL_CHOICES", "complexity", "nats_per_term", "multiplicity", "paired_se",
+           "mean_errors"]
 
 
 def _ebic(n_obs: float, n_candidates: float) -> float:
@@ -75,6 +76,12 @@ def paired_se(a: np.ndarray, b: np.ndarray) -> float:
     if not np.any(d):
         return 0.0
     return float(np.std(d, ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.inf
+
+
+def mean_errors(fold_errors) -> np.ndarray:
+    """Each candidate's mean cross-validated error over its folds; ``inf`` where a fold diverged."""
+    E = np.asarray(fold_errors, dtype=float)
+    return np.where(np.all(np.isfinite(E), axis=1), E.mean(axis=1), np.inf)
 
 
 def complexity(expr: sp.Expr) -> tuple[int, int, int]:
@@ -208,7 +215,7 @@ class SelectionRule:
         finite = np.all(np.isfinite(E), axis=1) if E.size else np.zeros(0, bool)
         if self.model_choice == "evidence" or not np.any(finite):
             return by_evidence, "the best penalised evidence"
-        mean = np.where(finite, E.mean(axis=1) if E.size else 0.0, np.inf)
+        mean = mean_errors(E)
         order = sorted(np.flatnonzero(finite), key=lambda k: (sizes[k], -objectives[k]))
         current = order[0]
         for k in order[1:]:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["effective_fraction", "ljung_box", "cross_correlation", "ResidualTest", "residual_test", "prewhitening",
-           "LEVEL"]
+           "innovations", "LEVEL"]
 
 
 def effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
@@ -191,13 +191,14 @@ def prewhitening(u: np.ndarray, max_order: int = PREWHITEN_ORDER) -> np.ndarray:
     return best
 
 
-def _filtered(x: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """``sum_i a_i x_{t-i}`` over the samples that have every lag."""
-    p = a.size - 1
-    out = a[0] * x[p:]
+def innovations(r: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``e_t = r_t + sum_i a_i r_{t-i}`` of one channel over one contiguous stretch, ``a = [a_1, ..., a_p]`` (the
+    first ``p`` samples, which lack their lags, are dropped)."""
+    p = a.size
+    e = r[p:].copy()
     for i in range(1, p + 1):
-        out = out + a[i] * x[p - i:x.size - i]
-    return out
+        e += a[i - 1] * r[p - i:r.size - i]
+    return e
 
 
 def residual_test(channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_params: int = 0,
@@ -213,7 +214,7 @@ def residual_test(channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_p
     inside, feedback = {}, {}
     for name, u in inputs.items():
         a = prewhitening(u)
-        rho, band = cross_correlation(_filtered(e, a), _filtered(u, a), lags)
+        rho, band = cross_correlation(innovations(e, a[1:]), innovations(u, a[1:]), lags)
         ratio = np.abs(rho) / (z * band)
         inside[name] = float(np.max(ratio[lags:]))
         feedback[name] = float(np.max(ratio[:lags - SPLINE_LAGS]))

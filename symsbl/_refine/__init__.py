@@ -36,7 +36,7 @@ from .._model import IdentifiedModel
 from .._symbolic.library import Library
 from .candidates import Rebased, extend, prior
 from .candidates import candidates as propose
-from .diagnostics import as_record, doubts, residual_tests
+from .diagnostics import as_record, doubts, noisy_inputs, residual_tests
 from .engine import Engine, Settings, record_horizon, residual_fraction
 from .options import MAX_SAMPLES, RefineOptions, as_options
 from .path import choose_structure
@@ -252,7 +252,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
         held = settings.interpolation == "hold"  # a digital controller's held output is known exactly
-        noisy = doubts(residual_tests(engine, sol), used, measured, model.input_names, held).input_noise
+        noisy = () if held else noisy_inputs(used, measured, model.input_names)
         adapt = settings.doubts == "adapt"
         n_obs = int(sum(r.n_samples for r in used)) * len(measured)
         n_candidates = len(library) if library is not None else max(engine.base.size, 2)
@@ -271,7 +271,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
             sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             bar.update()
         tests = residual_tests(engine, sol)  # the loop and the innovations' whiteness: on the structure selected
-        doubted = doubts(tests, used, measured, model.input_names, held)
+        doubted = doubts(tests, noisy)
         if adapt and doubted and not doubted.biased and sol.length > engine.length0:
             # process noise: segments short enough that no disturbance accumulates in them
             engine.longest = engine.length0
@@ -288,7 +288,7 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
         "effective_fraction": round(fraction, 4), "residual": [as_record(t) for t in tests],
         "doubts": list(doubted.reasons), "closed_loop": doubted.closed_loop, "input_noise": doubted.input_noise,
         "biased": doubted.biased, "short_segments": engine.longest,
-        "adapted": settings.doubts == "adapt"}}
+        "adapted": adapt}}
     return to_model(engine, sol, info), screened
 
 

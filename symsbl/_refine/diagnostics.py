@@ -34,7 +34,7 @@ from .._data.residuals import ResidualTest, residual_test
 from .._data.trajectory import spectral_noise_std
 from .noise import innovations
 
-__all__ = ["residual_tests", "as_record", "doubts", "Doubts", "INPUT_NOISE"]
+__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
 
 #: A measured input's relative noise (white-noise level over its spread) above this share of the outputs'
 #: smallest relative noise flags errors in variables.
@@ -116,11 +116,24 @@ class Doubts:
         return bool(self.reasons)
 
 
-def doubts(tests: list[ResidualTest], records, measured, inputs, exact_inputs: bool = False) -> Doubts:
-    """What doubts an output-error fit whose residual tests are ``tests`` on ``records`` (``measured`` channels,
-    ``inputs`` names; ``exact_inputs``: known without noise, as a controller's held output); empty when its
-    likelihood holds as far as the records tell."""
-    reasons, loop, noisy = [], False, False
+def noisy_inputs(records, measured, inputs) -> tuple[str, ...]:
+    """The measured inputs of ``records`` whose white-noise level exceeds :data:`INPUT_NOISE` of the ``measured``
+    outputs' smallest (errors in variables), one line each: a property of the data, not of a fit."""
+    outputs = [_relative_noise([r.column(m) for r in records]) for m in measured]
+    floor = min((o for o in outputs if o > 0), default=0.0)
+    reasons = []
+    for name in inputs:
+        level = _relative_noise([r.column(name) for r in records])
+        if floor > 0 and level > INPUT_NOISE * floor:
+            reasons.append(f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
+                           f"{100 * floor:.2g} % on the outputs): errors in variables")
+    return tuple(reasons)
+
+
+def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
+    """What doubts an output-error fit whose residual tests are ``tests``, its records' inputs being ``noisy``
+    (:func:`noisy_inputs`); empty when its likelihood holds as far as the records tell."""
+    reasons, loop = [], False
     for t in tests:
         if not t.white and t.independent:  # a residual the input explains is a missing term: the selection's job
             reasons.append(f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
@@ -130,12 +143,4 @@ def doubts(tests: list[ResidualTest], records, measured, inputs, exact_inputs: b
         if fed:
             loop = True
             reasons.append(f"{', '.join(fed)} depend(s) on past residuals of {t.channel}: a closed loop")
-    outputs = [_relative_noise([r.column(m) for r in records]) for m in measured]
-    floor = min((o for o in outputs if o > 0), default=0.0)
-    for name in () if exact_inputs else inputs:
-        level = _relative_noise([r.column(name) for r in records])
-        if floor > 0 and level > INPUT_NOISE * floor:
-            noisy = True
-            reasons.append(f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
-                           f"{100 * floor:.2g} % on the outputs): errors in variables")
-    return Doubts(tuple(reasons), loop, noisy)
+    return Doubts(tuple(reasons) + tuple(noisy), loop, bool(noisy))

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
+from .._data.residuals import innovations
+
 __all__ = ["NoiseModel", "fit_ar", "choose_order", "MAX_ORDER", "innovations"]
 
 #: Largest autoregressive order tried per channel.
@@ -139,13 +141,3 @@ def choose_order(r: np.ndarray, since: np.ndarray, run: np.ndarray, max_order: i
         if bic < best_bic - 1e-9:
             best, best_bic = p, bic
     return best
-
-
-def innovations(r: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """``e_t = r_t + sum_i a_i r_{t-i}`` of one channel over one contiguous stretch (the first ``p`` samples,
-    which lack their lags, are dropped)."""
-    p = a.size
-    e = r[p:].copy()
-    for i in range(1, p + 1):
-        e += a[i - 1] * r[p - i:r.size - i]
-    return e

@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 
 from .._base.errors import SimulationError
-from .._base.rule import SelectionRule, paired_se
+from .._base.rule import SelectionRule, mean_errors, paired_se
 from .._data.trajectory import third_difference_std
 from .._model import IdentifiedModel, ModelPath, PathEntry
 from .candidates import prior
@@ -205,7 +205,7 @@ def choose_structure(start: IdentifiedModel, refined: IdentifiedModel, records, 
     objectives = [float(sol.posterior.log_evidence) - cost * n for (sol, _, _), n in zip(entries, sizes)]
     E = np.array([e for _, _, e in entries])
     chosen, reason = rule.choose(sizes, objectives, E, floor=_noise_floor(engine.passes))
-    mean = np.where(np.all(np.isfinite(E), axis=1), E.mean(axis=1), np.inf)
+    mean = mean_errors(E)
     best = int(np.argmin(mean))
     path = ModelPath(tuple(PathEntry(_names(engine, entries[k][0].active), sizes[k],
                                      float(entries[k][0].posterior.log_evidence), objectives[k], float(mean[k]),

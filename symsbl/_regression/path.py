@@ -16,7 +16,7 @@ import dataclasses
 
 import numpy as np
 
-from .._base.rule import SelectionRule, paired_se
+from .._base.rule import SelectionRule, mean_errors, paired_se
 from .._model import Equation, IdentifiedModel, ModelPath, PathEntry
 from .gram import GramStats
 from .rows import RegressionStats
@@ -48,22 +48,22 @@ def fold_errors(folds: list[GramStats], cols: list[int], target: int, template: 
         except (ValueError, np.linalg.LinAlgError):
             out.append(np.inf)
             continue
-        theta = fit.coef_
-        G, b, yy = f.gram[np.ix_(cols, cols)], f.dty[cols, target], float(f.yty[target])
-        sse = yy - 2.0 * float(theta @ b) + float(theta @ G @ theta)
-        out.append(float(np.sqrt(max(sse, 0.0) / yy)) if yy > 0 else np.inf)
+        yy = float(f.yty[target])
+        out.append(float(np.sqrt(max(_sse(f, cols, target, fit.coef_), 0.0) / yy)) if yy > 0 else np.inf)
     return np.array(out)
+
+
+def _sse(st: GramStats, cols: list[int], target: int, theta: np.ndarray) -> float:
+    """The squared residual of the equation on ``cols`` with coefficients ``theta``, from the statistics alone."""
+    G, b = st.gram[np.ix_(cols, cols)], st.dty[cols, target]
+    return float(st.yty[target]) - 2.0 * float(theta @ b) + float(theta @ G @ theta)
 
 
 def noise_floor(clean: GramStats, again: GramStats, cols: list[int], target: int, theta: np.ndarray) -> float:
     """The relative error the noise alone leaves in an equation: what the records' noise, added once more
     (``again``: the statistics of the records with their noise doubled), adds to the residual of the equation
     on ``cols`` with coefficients ``theta``, relative to the target."""
-    def sse(st: GramStats) -> float:
-        G, b = st.gram[np.ix_(cols, cols)], st.dty[cols, target]
-        return float(st.yty[target]) - 2.0 * float(theta @ b) + float(theta @ G @ theta)
-
-    extra = max(sse(again) - sse(clean), 0.0)
+    extra = max(_sse(again, cols, target, theta) - _sse(clean, cols, target, theta), 0.0)
     return float(np.sqrt(extra / clean.yty[target])) if clean.yty[target] > 0 else 0.0
 
 
@@ -99,7 +99,7 @@ def validated_equations(model: IdentifiedModel, problem: RegressionStats, folds:
                                                        full_fit.coef_[np.arange(len(full_cols))])
         chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
         reasons.append(reason)
-        best = int(np.argmin(np.where(np.all(np.isfinite(E), axis=1), E.mean(axis=1), np.inf)))
+        best = int(np.argmin(mean_errors(E)))
         for k, (c, f, e) in enumerate(path):
             entries.append(PathEntry(((eq.lhs, tuple(names[i] for i in c)),), sizes[k], float(f.log_evidence_),
                                      objectives[k], float(np.mean(e)), paired_se(e, E[best]),
