@@ -53,8 +53,9 @@ from ._derivatives.differentiator import Differentiator, Stencil
 from ._derivatives.differences import CentralDifference, PointDifference, SavitzkyGolay
 from ._derivatives.weakform import WeakForm
 
-# -- the identified model --------------------------------------------------------------------
+# -- the identified model and its observation model (what each measured channel is) -------------
 from ._model import Equation, FitMethod, IdentifiedModel, ModelPath, PathEntry, TermEstimate
+from ._model import AccelerationOutput, AlgebraicOutput, Output, StateOutput
 
 # -- sparse Bayesian regression (equation error) -----------------------------------------------
 from ._regression.gram import GramStats
@@ -134,6 +135,7 @@ __all__ = [
     "GramStats", "RVM", "RegressionStats", "regression_stats", "fit_stats", "identify", "RefineOptions", "refine",
     # the model
     "TermEstimate", "Equation", "IdentifiedModel", "FitMethod", "ModelPath", "PathEntry",
+    "Output", "StateOutput", "AccelerationOutput", "AlgebraicOutput",
     # validation
     "Validation", "validate_model", "nrmse", "TruthComparison", "compare_to_truth",
     # discrepancy

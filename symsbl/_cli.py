@@ -149,14 +149,36 @@ def _read(args, path, states, inputs, *, optional=()):
 
 
 def _unmeasured_allowed(states, kinematics) -> tuple:
-    """States a record may lack once kinematic pairs are declared: the velocities, and any other state
-    (latent: its law is identified from the measured ones, see :mod:`symsbl._latent`)."""
-    from ._derivatives.kinematics import parse_kinematics
+    """Columns a record may lack once kinematic pairs are declared: the velocities, the positions of pairs that
+    have an acceleration column, the acceleration columns, and any other state (latent: its law is identified
+    from the measured ones, see :mod:`symsbl._latent`)."""
+    from ._derivatives.kinematics import kinematic_triples
 
     if not kinematics:
         return ()
-    positions = {x for x, _ in parse_kinematics(kinematics, states)}
-    return tuple(s for s in states if s not in positions)
+    triples = kinematic_triples(kinematics, states)
+    positions = {x for x, _, a in triples if a is None}
+    return tuple(s for s in states if s not in positions) + tuple(a for _, _, a in triples if a is not None)
+
+
+def _accelerations(states, kinematics) -> list[str]:
+    """The acceleration columns the kinematic pairs name."""
+    from ._derivatives.kinematics import kinematic_triples
+
+    return [a for _, _, a in kinematic_triples(kinematics, states) if a is not None] if kinematics else []
+
+
+def _read_all(args, paths, states, inputs, *, optional=()) -> list:
+    """Every DATA file's record; the files must hold the same columns."""
+    records = [_read(args, path, states, inputs, optional=optional) for path in paths]
+    first = records[0]
+    for path, r in zip(paths[1:], records[1:]):
+        if (r.state_names, r.input_names) != (first.state_names, first.input_names):
+            raise DataError(expected(f"DATA {path!r}", f"the columns of {paths[0]!r} "
+                                     f"{list(first.state_names + first.input_names)}",
+                                     f"{list(r.state_names + r.input_names)}", "give files of one test campaign, "
+                                     "each with the same columns", raw=True))
+    return records
 
 
 def _cmd_identify(args) -> int:
@@ -167,9 +189,11 @@ def _cmd_identify(args) -> int:
     from ._refine.options import RefineOptions
     from ._symbolic.symbols import symbols
 
-    states, inputs = _names(args.states), _names(args.inputs)
-    _outputs(args, [args.data, args.library if str(args.library).endswith(".py") else None])
-    traj = _read(args, args.data, states, inputs, optional=_unmeasured_allowed(states, args.kinematics))
+    states, inputs, outputs = _names(args.states), _names(args.inputs), _names(args.outputs)
+    _outputs(args, [*args.data, args.library if str(args.library).endswith(".py") else None])
+    accelerations = _accelerations(states, args.kinematics)
+    records = _read_all(args, args.data, states + accelerations + outputs, inputs,
+                        optional=_unmeasured_allowed(states, args.kinematics))
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     derivative = args.derivative
     integer("--overlap", args.overlap, low=1)
@@ -181,17 +205,18 @@ def _cmd_identify(args) -> int:
     options = RefineOptions(noise=args.noise, doubts=args.doubts,
                             **({"interpolation": args.interpolation} if args.interpolation else {}))
     try:
-        model = identify(traj, library, derivative=derivative, states=states, kinematics=args.kinematics or None,
-                         refine=False if args.no_refine else options,
-                         selection=SelectionRule(model_choice=args.selection))
+        model = identify(records if len(records) > 1 else records[0], library, derivative=derivative, states=states,
+                         kinematics=args.kinematics or None, refine=False if args.no_refine else options,
+                         selection=SelectionRule(model_choice=args.selection), outputs=outputs)
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("WeakForm.overlap:", "--overlap:", 1)) from None
     estimator = model.metadata.get("estimator", {})
     how = ("output error (refined)" if model.fit.value == "output-error" else
            "equation error (output error is biased here)" if estimator.get("used") == "equation-error" else
            "equation error")
-    print(f"identified from {traj.n_samples} samples at {traj.fs:.6g} Hz with {len(library)} candidate terms, "
-          f"coefficients by {how}:")
+    where = (f"{records[0].n_samples} samples at {records[0].fs:.6g} Hz" if len(records) == 1 else
+             f"{len(records)} records ({sum(r.n_samples for r in records)} samples)")
+    print(f"identified from {where} with {len(library)} candidate terms, coefficients by {how}:")
     print(model)
     for line in _diagnosis(model):
         print(line)
@@ -249,26 +274,42 @@ def _cmd_validate(args) -> int:
     from ._model import IdentifiedModel
     from ._validate.validate import validate_model
 
-    _outputs(args, [args.model, args.data])
+    _outputs(args, [args.model, *args.data])
     model = IdentifiedModel.load(args.model)
-    velocities = tuple(v for _, v in model.kinematics)
-    traj = _read(args, args.data, model.state_names, model.input_names, optional=velocities + model.latent_names)
-    try:
-        result = validate_model(model, traj, n_band=args.band, interpolation=args.interpolation)
-    except SymsblError as err:  # name the option, not the keyword behind it
-        raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
-    print(result.message)
+    channels = [o.name for o in model.observation if o.state is None]
+    # a record may hold any of the model's channels: the states it lacks start as unknowns or from the others
+    optional = tuple(model.state_names) + tuple(channels)
+    records = [_read(args, path, list(model.state_names) + channels, model.input_names, optional=optional)
+               for path in args.data]
+    results = []
+    for path, traj in zip(args.data, records):
+        try:
+            result = validate_model(model, traj, n_band=args.band, interpolation=args.interpolation)
+        except SymsblError as err:  # name the option, not the keyword behind it
+            raise type(err)(str(err).replace("n_band:", "--band:", 1)) from None
+        print(f"{path}:\n" + result.message if len(records) > 1 else result.message)
+        results.append(result)
     if args.json is not None:
-        doc = {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit,
-               **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
-               **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse})}
-        _write_json(args.json, doc)
+        docs = [_validation_doc(r) for r in results]
+        if len(docs) == 1:
+            _write_json(args.json, docs[0])
+        else:
+            worst = "diverged" if any(r.status != "ok" for r in results) else "ok"
+            _write_json(args.json, {"status": worst, "records": [dict(data=str(p), **d)
+                                                                 for p, d in zip(args.data, docs)]})
     if args.plot is not None:
         from .plots import figure2
 
-        _save_figure(figure2(model, result), args.plot)
-        print(f"figure written to {args.plot}")
-    return 0 if result.status == "ok" else 1
+        _save_figure(figure2(model, results[0]), args.plot)
+        print(f"figure written to {args.plot}" + (f" (for {args.data[0]})" if len(records) > 1 else ""))
+    return 0 if all(r.status == "ok" for r in results) else 1
+
+
+def _validation_doc(result) -> dict:
+    """What ``validate --json`` writes of one record's validation."""
+    return {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit,
+            **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
+            **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse})}
 
 
 def _cmd_discrepancy(args) -> int:
@@ -323,8 +364,12 @@ def _cmd_demo(args) -> int:
     return 0
 
 
-def _data_options(p, *, states: bool = True, optional: bool = False) -> None:
-    p.add_argument("data", nargs="?" if optional else None, help="CSV with a header row, .npz or .mat")
+def _data_options(p, *, states: bool = True, optional: bool = False, several: bool = False) -> None:
+    if several:
+        p.add_argument("data", nargs="+", help="one or several records (CSV with a header row, .npz or .mat), "
+                       "fitted together, each with its own initial state and noise level")
+    else:
+        p.add_argument("data", nargs="?" if optional else None, help="CSV with a header row, .npz or .mat")
     if states:
         p.add_argument("--states", required=not optional, help="comma-separated state columns, e.g. x1,x2")
         p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
@@ -337,8 +382,8 @@ def _data_options(p, *, states: bool = True, optional: bool = False) -> None:
 def _add_identify(sub, common) -> None:
     from ._derivatives.registry import DIFFERENTIATORS
 
-    p = sub.add_parser("identify", parents=[common], help="identify equations of motion from a data file")
-    _data_options(p)
+    p = sub.add_parser("identify", parents=[common], help="identify equations of motion from one or several data files")
+    _data_options(p, several=True)
     p.add_argument("--library", default="paper",
                    help="'paper' (Eq. 21), 'poly', or a .py file defining `library` (its Python runs)")
     p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
@@ -347,9 +392,13 @@ def _add_identify(sub, common) -> None:
     p.add_argument("--overlap", type=int, default=1, metavar="Q",
                    help="weak form: test functions per window length (default: 1, windows apart; 2: half overlap, "
                         "rows whitened for the noise correlation they share)")
-    p.add_argument("--kinematics", default="", metavar="X:V[,...]",
-                   help="position:velocity pairs with x' = v exactly (fixed, not identified); the velocity may be "
-                        "absent from DATA (unmeasured), e.g. --kinematics y:v")
+    p.add_argument("--kinematics", default="", metavar="X:V[:A][,...]",
+                   help="position:velocity pairs with x' = v exactly (fixed, not identified), each with the column of "
+                        "an accelerometer that measures v' as a third name if there is one; any member may be absent "
+                        "from DATA (unmeasured), e.g. --kinematics y:v or x1:v1:a1,x2:v2:a2")
+    p.add_argument("--outputs", default="", metavar="NAME[,...]",
+                   help="columns with an equation of their own over the library (a force cell), identified with the "
+                        "states, e.g. --outputs Fc")
     p.add_argument("--no-refine", action="store_true",
                    help="stop at the equation-error fit (default: refine every coefficient by output error)")
     p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
@@ -383,8 +432,9 @@ def _add_validate(sub, common) -> None:
     p = sub.add_parser("validate", aliases=["simulate"], parents=[common],
                        help="re-simulate a saved model on a data file and print its errors")
     p.add_argument("model", help="model JSON written by `symsbl identify --json`")
-    _data_options(p, states=False)
-    p.add_argument("--json", help="write the errors as JSON to this file")
+    _data_options(p, states=False, several=True)
+    p.add_argument("--json", help="write the errors as JSON to this file (several DATA: one entry per record under "
+                   "'records')")
     p.add_argument("--band", type=int, default=0, metavar="N",
                    help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
                         "(default: 0, no band)")

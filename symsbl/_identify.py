@@ -21,9 +21,10 @@ import numpy as np
 from ._base.errors import DataError, ParameterError, expected
 from ._base.rule import SelectionRule
 from ._data.trajectory import Trajectory, noise_levels
-from ._derivatives.kinematics import complete_states, latent_states, parse_kinematics
+from ._derivatives.kinematics import complete_states, kinematic_triples, latent_states
 from ._latent import identify_latent
 from ._model import FitMethod, IdentifiedModel
+from ._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
 from ._refine import refine_or_keep
 from ._refine.options import RefineOptions, as_options
 from ._regression.fit import fit_stats, selection_rule
@@ -49,14 +50,16 @@ def identify(
     refine: bool | RefineOptions = True,
     refine_options: RefineOptions | dict | None = None,
     selection: SelectionRule | None = None,
+    outputs=(),
 ) -> IdentifiedModel:
     """Identify one sparse ODE per state from sampled trajectories.
 
     Parameters
     ----------
     data : Trajectory or list of Trajectory
-        Measured or simulated states and inputs. Every state gets an equation; kinematic ones
-        (``x1' = x2``) are found, not assumed, unless declared in ``kinematics``.
+        Measured or simulated channels and inputs; several records (a test campaign at several levels, say)
+        are fitted jointly, each with its own initial state and noise level. Every state gets an equation;
+        kinematic ones (``x1' = x2``) are found, not assumed, unless declared in ``kinematics``.
     library : Library
         Candidate terms, e.g. :func:`symsbl.paper`.
     derivative : str or derivative strategy
@@ -83,8 +86,12 @@ def identify(
         ("hidden" or "nothing hidden"), and the model is always refined by output error.
     kinematics : mapping or str, optional
         Position-velocity pairs, ``{"x1": "x2"}`` or ``"x1:x2,x3:x4"``: ``x1' = x2`` holds exactly,
-        the equation is fixed and ``x2`` may be unmeasured (estimated for the regression by a
-        smoothing derivative of ``x1``, :func:`symsbl._derivatives.kinematics.estimate_velocity`).
+        the equation is fixed and either member may be unmeasured. A third name, ``"x1:x2:a1"`` (or
+        ``{"x1": ("x2", "a1")}``), is the column of an accelerometer that measures ``x2'``: it is the velocity
+        equation's target in the equation error and an output of the model (:class:`~symsbl.AccelerationOutput`)
+        in the output error. Members that are not measured are reconstructed for the equation error (a
+        velocity by a smoothing derivative of its position, a position or velocity by integrating a measured
+        velocity or acceleration, its drift filtered out) and are initial-state unknowns of the output error.
     refine : bool or RefineOptions
         Re-estimate every coefficient by output error (:func:`symsbl.refine`) after the
         equation-error fit, and select terms on the output-error evidence (default; a
@@ -97,6 +104,10 @@ def identify(
         :class:`symsbl.SelectionRule`: the extended BIC's penalty per term, parsimony within 2 nats).
         ``equivalence_nats`` and the template ``rvm``'s ``prune_nats`` are parts of it that may be
         given on their own.
+    outputs : sequence of str
+        Columns with an equation of their own, ``y = sum_j c_j phi_j(x, u)`` over the library (a force cell,
+        :class:`~symsbl.AlgebraicOutput`): identified like a state equation, and fitted with them by output
+        error.
 
     Returns
     -------
@@ -123,18 +134,38 @@ def identify(
     trajectories = as_trajectories(data)
     rule = selection_rule(selection, rvm, equivalence_nats)
     options = _refine_options(refine, refine_options)
-    names = tuple(trajectories[0].state_names) if states is None else tuple(states)
-    pairs = parse_kinematics(kinematics, names)
-    latent = latent_states(names, trajectories[0].state_names, pairs)
+    algebraic = _algebraic(outputs)
+    columns = trajectories[0].state_names
+    extra = set(algebraic)
+    names = tuple(n for n in columns if n not in extra) if states is None else tuple(states)
+    triples = kinematic_triples(kinematics, names)
+    pairs = tuple((x, v) for x, v, _ in triples)
+    accelerations = {v: a for _, v, a in triples if a is not None}
+    if states is None:
+        names = tuple(n for n in names if n not in set(accelerations.values()))
+        triples = kinematic_triples(kinematics, names)
+    _check_columns(columns, names, accelerations, algebraic)
+    latent = latent_states(names, columns, pairs, accelerations)
     if latent:
+        if accelerations or algebraic:
+            given = list(accelerations.values()) + list(algebraic)
+            raise ParameterError(expected("states", "latent states with position records only (accelerations and "
+                                          "algebraic outputs with latent states are not identified yet)",
+                                          f"latent {list(latent)} with outputs {given}", raw=True))
         return identify_latent(trajectories, library, names, pairs, latent, refine_options=refine_options)
-    completed, unmeasured = complete_states(trajectories, names, pairs)
-    problem = regression_stats(completed, library, derivative=derivative, chunk_size=chunk_size, jit=jit)
+    present = {v: a for v, a in accelerations.items() if a in columns}
+    completed, unmeasured = complete_states(trajectories, names, pairs, present,
+                                            keep=tuple(present.values()) + algebraic)
+    problem = regression_stats(completed, library, derivative=derivative, chunk_size=chunk_size, jit=jit,
+                               states=names, derivatives=present, outputs=algebraic)
     model = fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
-    if unmeasured:
-        measured = tuple(n for n in names if n not in unmeasured)
-        model = dataclasses.replace(model, measured=measured,
-                                    metadata=dict(model.metadata, unmeasured_estimate="smoothing derivative"))
+    measured = tuple(n for n in names if n in columns)
+    observed = (state_outputs(measured) + tuple(AccelerationOutput(a, v) for v, a in present.items())
+                + tuple(AlgebraicOutput(n) for n in algebraic))
+    if unmeasured or present or algebraic:
+        how = ", ".join(f"{n} by {_how(n, pairs, present, columns)}" for n in unmeasured)
+        model = dataclasses.replace(model, measured=measured, outputs=observed if present or algebraic else (),
+                                    metadata=dict(model.metadata, **({"unmeasured_estimate": how} if how else {})))
     if options is None:
         return model
     refined = refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
@@ -156,16 +187,49 @@ def _reported(start: IdentifiedModel, refined: IdentifiedModel, records, problem
     alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
     used = dict(used, used="equation-error", output_error=alternative)
     try:
-        folds = [regression_stats(piece, problem.library, derivative=problem.derivative).stats
+        folds = [regression_stats(piece, problem.library, derivative=problem.derivative, **problem.targets).stats
                  for piece in _folds(records)]
     except DataError as error:  # folds too short for the library: the equation error's own selection stands
         meta = dict(start.metadata, refine=refined.metadata.get("refine", {}),
                     estimator=dict(used, validated=f"no: {error}"))
         return dataclasses.replace(start, metadata=meta)
-    again = regression_stats([_noisier(r) for r in records], problem.library, derivative=problem.derivative)
+    again = regression_stats([_noisier(r) for r in records], problem.library, derivative=problem.derivative,
+                             **problem.targets)
     model, path = validated_equations(start, problem, folds, template, rule, again.stats)
     meta = dict(start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated="yes"))
     return dataclasses.replace(model, metadata=meta, path=path)
+
+
+def _algebraic(outputs) -> tuple[str, ...]:
+    """The names of the algebraic outputs (a sequence of column names, or comma-separated text)."""
+    if isinstance(outputs, str):
+        outputs = [n.strip() for n in outputs.split(",") if n.strip()]
+    if not isinstance(outputs, (list, tuple)) or not all(isinstance(n, str) and n for n in outputs):
+        raise ParameterError(expected("outputs", "names of columns with an equation of their own (a force cell)",
+                                      outputs))
+    return tuple(outputs)
+
+
+def _check_columns(columns, names, accelerations: dict, algebraic) -> None:
+    """Every algebraic output is a column; outputs are named unlike the states; a pair's acceleration, when its
+    column is absent, is not needed."""
+    clash = sorted(set(algebraic) & (set(names) | set(accelerations.values())))
+    if clash:
+        raise ParameterError(expected("outputs", "columns named unlike the states and the accelerations", clash,
+                                      raw=True))
+    absent = [n for n in algebraic if n not in columns]
+    if absent:
+        raise DataError(expected(f"outputs {','.join(absent)}", "columns of the data", "no such column", raw=True))
+
+
+def _how(name: str, pairs, accelerations: dict, columns) -> str:
+    """How the equation error reconstructed a state the records lack."""
+    for x, v in pairs:
+        if name == v and x in columns:
+            return "smoothing derivative"
+        if name in (x, v):
+            return "integration"
+    return "integration"
 
 
 def _noisier(record: Trajectory) -> Trajectory:

@@ -187,3 +187,99 @@ def library() -> symsbl.Library:
     x, v, F = symsbl.symbols("x v F")
     return symsbl.polynomial([x, v], 3, absolute=True) + symsbl.elementwise([x, v], ["sin", "sign"]) + \
         symsbl.inputs([F])
+
+
+def accelerations(plant: Plant, states: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """The mass's acceleration at every sample of clean ``states`` ``(n, 2)`` under ``force`` ``(n,)`` (a stuck
+    mass, ``v = 0`` with the net force inside the friction, does not accelerate)."""
+    x, v = states[:, 0], states[:, 1]
+    a = plant.acceleration(x, v, force)
+    if plant.fc:
+        net = force - plant.k * x - plant.k3 * x**3
+        stuck = (v == 0.0) & (np.abs(net) <= plant.fc)
+        a = np.where(stuck, 0.0, np.where(v == 0.0, (net - plant.fc * np.sign(net)) / plant.m, a))
+    return a
+
+
+def accelerometer_record(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, band=(2.0, 30.0),
+                         noise=0.01, keep=("a",)) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
+    """An accelerometer's record ``a`` (with ``noise`` times its spread, white) and the clean record of ``x``,
+    ``v``, ``a`` it was taken from."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(seconds * fs)) + 1) / fs
+    force = multisine(rms, band[0], band[1], seconds, rng)
+    clean = simulate(plant, force, t)
+    f = force(t)
+    a = accelerations(plant, clean, f)
+    columns = np.column_stack([clean, a])
+    truth = symsbl.Trajectory(t, columns, f[:, None], ("x", "v", "a"), ("F",))
+    noisy = columns + noise * columns.std(axis=0) * rng.standard_normal(columns.shape)
+    measured = symsbl.Trajectory(t, noisy, f[:, None], ("x", "v", "a"), ("F",)).with_states(list(keep))
+    return measured, truth
+
+
+@dataclasses.dataclass(frozen=True)
+class Chain:
+    """Two masses in a chain: ground - (k1, c1, cubic k3, Coulomb fc on mass 1) - m1 - (k2, c2) - m2, the force on
+    mass 2.
+
+    ``m1 x1'' = -k1 x1 - c1 v1 - k3 x1^3 - fc sign(v1) + k2 (x2 - x1) + c2 (v2 - v1)``,
+    ``m2 x2'' = F - k2 (x2 - x1) - c2 (v2 - v1)``.
+    """
+
+    m1: float = 1.3
+    m2: float = 0.8
+    k1: float = 2.0e3
+    k2: float = 1.2e3
+    c1: float = 1.6
+    c2: float = 0.9
+    k3: float = 3.0e7
+    fc: float = 0.0
+
+    def rhs(self, s, force):
+        x1, v1, x2, v2 = s
+        spring = self.k2 * (x2 - x1) + self.c2 * (v2 - v1)
+        a1 = (-self.k1 * x1 - self.c1 * v1 - self.k3 * x1**3 - self.fc * np.sign(v1) + spring) / self.m1
+        a2 = (force - spring) / self.m2
+        return np.array([v1, a1, v2, a2])
+
+    def truth(self) -> dict:
+        """The true coefficients of ``v1'`` and ``v2'`` in symsbl's term names."""
+        v1 = {"x1": -(self.k1 + self.k2) / self.m1, "v1": -(self.c1 + self.c2) / self.m1, "x2": self.k2 / self.m1,
+              "v2": self.c2 / self.m1, "x1**3": -self.k3 / self.m1}
+        if self.fc:
+            v1["sign(v1)"] = -self.fc / self.m1
+        v2 = {"x1": self.k2 / self.m2, "v1": self.c2 / self.m2, "x2": -self.k2 / self.m2, "v2": -self.c2 / self.m2,
+              "F": 1 / self.m2}
+        return {"v1": v1, "v2": v2}
+
+    def record(self, seed: int, *, fs=1000.0, seconds=4.0, rms=5.0, band=(2.0, 40.0), noise=0.01,
+               substeps=16) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
+        """Accelerometers ``a1``, ``a2`` with ``noise`` times their spread, and the clean record of every state and
+        acceleration, by classical RK4 at ``substeps`` per sample on the analytic force (written here, not
+        symsbl's)."""
+        rng = np.random.default_rng(seed)
+        n = int(round(seconds * fs)) + 1
+        t = np.arange(n) / fs
+        force = multisine(rms, band[0], band[1], seconds, rng)
+        h = 1.0 / (fs * substeps)
+        half = force(np.arange(2 * substeps * (n - 1) + 1) * (h / 2))  # the force at every half step
+        s, out = np.zeros(4), np.empty((n, 4))
+        for i in range(n):
+            out[i] = s
+            if i == n - 1:
+                break
+            for j in range(substeps):
+                q = 2 * (i * substeps + j)
+                k1 = self.rhs(s, half[q])
+                k2 = self.rhs(s + h / 2 * k1, half[q + 1])
+                k3 = self.rhs(s + h / 2 * k2, half[q + 1])
+                k4 = self.rhs(s + h * k3, half[q + 2])
+                s = s + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        f = force(t)
+        acc = np.array([self.rhs(row, fi)[[1, 3]] for row, fi in zip(out, f)])
+        columns = np.column_stack([out, acc])
+        names = ("x1", "v1", "x2", "v2", "a1", "a2")
+        truth = symsbl.Trajectory(t, columns, f[:, None], names, ("F",))
+        noisy = columns + noise * columns.std(axis=0) * rng.standard_normal(columns.shape)
+        return symsbl.Trajectory(t, noisy, f[:, None], names, ("F",)).with_states(["a1", "a2"]), truth

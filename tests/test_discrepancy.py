@@ -123,7 +123,7 @@ def test_two_hidden_effects_are_found_in_two_iterations():
     assert eq.coef("sign(x2)") == pytest.approx(-1.0, rel=0.1)
     assert eq.coef("x1**3") == pytest.approx(-3.8e5, rel=0.1)
     assert eq.coef("x2") == pytest.approx(-20.0, rel=0.02)
-    assert report.steps[-1].error_heldout < 1.1 * NOISE < 1.25 * NOISE < report.steps[0].error_heldout
+    assert report.steps[-1].error_heldout < 1.1 * NOISE < 1.2 * NOISE < report.steps[0].error_heldout
 
 
 @pytest.mark.slow
@@ -517,7 +517,8 @@ def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
         return Trajectory(tr.t, tr.states + 0.01 * tr.states.std(axis=0) * e / e.std(axis=0), tr.inputs,
                           tr.state_names, tr.input_names)
 
-    report = discrepancy(coloured(clean_train), "x: v; v: F, x, v", heldout=coloured(clean_held))
+    report = discrepancy(coloured(clean_train), "x: v; v: F, x, v", heldout=coloured(clean_held),
+                         evidence="output-error")
     (step,) = report.steps
     assert step.decision == "nothing missing" and step.residual_ratio > 10, step.verdict
     assert "correlated measurement noise" in step.verdict
@@ -570,9 +571,15 @@ def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
     m, c, k, k3, fc = 0.8, 1.5, 5e3, 3e7, 0.4
     x, v, F = ca.SX.sym("x"), ca.SX.sym("v"), ca.SX.sym("F")
     system = OdeSystem((x, v), (F,), (v, (F - c * v - k * x - k3 * x**3 - fc * ca.sign(v)) / m), (), (), "hard")
-    recs = [simulate(system, time_grid(duration, 1000.0), method="rk4", substeps=16,
-                     inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed)).with_noise(0.01, seed=seed)
-            for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))]
+    clean = [simulate(system, time_grid(duration, 1000.0), method="rk4", substeps=16,
+                      inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed))
+             for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))]
+    # one sensor for both records: the same absolute noise, 1 % of the first record's spread
+    scale = 0.01 * clean[0].states.std(axis=0)
+    rng = np.random.default_rng(0)
+    recs = [symsbl.Trajectory(r.t, r.states + scale * rng.standard_normal(r.states.shape), r.inputs, r.state_names,
+                              r.input_names) for r in clean]
+    floor = float(np.mean(scale / clean[1].states.std(axis=0)))  # the held-out record's relative noise
     report = discrepancy(recs[0], "x: v; v: F, x, v", heldout=recs[1], evidence="output-error")
     assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict
     assert "removed" in [s.decision.value for s in report.steps], report.verdict
@@ -581,4 +588,4 @@ def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
     assert sorted(eq.names) == sorted(truth), str(report.final)
     for name, value in truth.items():
         assert eq.coef(name) == pytest.approx(value, rel=0.01), name
-    assert report.steps[-1].decision == "nothing missing" and report.steps[-1].error_heldout < 0.0105
+    assert report.steps[-1].decision == "nothing missing" and report.steps[-1].error_heldout < 1.05 * floor

@@ -139,7 +139,7 @@ CLI_CASES = [
      "symsbl discrepancy: error: --base (state 'x2'): expected a term that is finite where its variables are, "
      "received 'x1/(1-1)', which divides by zero; correct or remove the term"),
     ("a band of a billion draws", None, ["validate", "{d}/model.json", "{d}/train.csv", "--band", "1000000000"], 2,
-     "symsbl validate: error: --band: expected at most 10000 Monte Carlo draws for 4097 samples of 2 states (2 GiB "
+     "symsbl validate: error: --band: expected at most 10000 Monte Carlo draws for 4097 samples of 2 channels (2 GiB "
      "held at once), received 1000000000; 100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"),
     ("held-out record that is DATA", "link",
      ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1, x2",

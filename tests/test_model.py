@@ -159,7 +159,7 @@ def test_divergence_is_reported_not_raised():
 def test_validation_errors(duffing):
     _, data, model = duffing
     other = Trajectory(t=data.t, states=data.states, inputs=data.inputs, state_names=("y1", "y2"), input_names=("F",))
-    with pytest.raises(DataError, match=exactly("data: expected the model's states ['x1', 'x2'], received states "
+    with pytest.raises(DataError, match=exactly("data: expected the model's channels ['x1', 'x2'], received columns "
                                                 "['y1', 'y2'] (missing ['x1', 'x2'])")):
         validate_model(model, other)
     no_input = Trajectory(t=data.t, states=data.states, state_names=("x1", "x2"))

@@ -260,7 +260,8 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     X0 = engine.guess[starts]
     whole = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
     records = passes.records
-    step, _ = sensitivity_step(engine.param, records.observe, records.n_outputs, engine.substeps)
+    step, _ = sensitivity_step(engine.param, engine.param.observe(records.outputs), records.n_outputs,
+                                engine.substeps)
     passes.chunk = 64
     passes._sens = _chunk(step, False, passes.records.n_total, 64)
     passes._sens_buffer = passes._sens.buffer()

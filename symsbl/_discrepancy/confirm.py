@@ -70,7 +70,7 @@ def cross_validated_gain(scorer_of, without, with_effect, records, measured, set
             except SimulationError:
                 scores.append(-math.inf)
                 continue
-            model, w = scorer.fitted(), scorer.solution.w
+            model, w = scorer.fitted(), scorer.solution.channel_w
             if horizons is not None and scorer.horizon is not None:
                 horizons.append(scorer.horizon)
             scores.append(sum(predictive_log_likelihood(model, r, measured, settings, w) for r in predicted))

@@ -16,16 +16,20 @@ __all__ = ["locate"]
 
 
 def locate(model, train, heldout, design, displacement, velocity, measure, measured=None) -> Disagreement:
-    """Where ``model`` disagrees with the records: residual regions, the jump across v = 0, the phase-plane
-    map and the held-out error over time (of the ``measured`` states, default all; an unmeasured velocity's
-    column holds an estimate, which the equation residual uses)."""
+    """Where ``model`` disagrees with the records: residual regions, the jump across v = 0 and the phase-plane
+    map of the equation residual of ``model``'s structure refitted on ``train``, and the held-out error over
+    time (of the ``measured`` states, default all; an unmeasured velocity's column holds an estimate, which the
+    equation residual uses)."""
     diff = design.derivative
     eq = model.equation(velocity)
     lib = Library([t.expr for t in eq.terms], design.variables)
     Z = np.column_stack([train.column(n) for n in lib.variable_names])
     D = diff.reduce(Evaluator(lib, jit=False).evaluate(Z))
     y = diff.targets(train.t, train.column(velocity)[:, None])[:, 0]
-    r = y - D @ np.array([eq.coef(n) for n in lib.names])
+    # the structure's own least-squares fit on this record: what its terms cannot explain here, whichever
+    # records and weights the model's coefficients were fitted on
+    coef = np.linalg.lstsq(D, y, rcond=None)[0] if D.shape[1] else np.zeros(0)
+    r = y - D @ coef
     xv = diff.reduce(np.column_stack([train.column(displacement) if displacement else np.zeros(train.n_samples),
                                       train.column(velocity)]))
     x, v = xv[:, 0], xv[:, 1]

@@ -102,9 +102,9 @@ class Scorer:
     @property
     def residual(self) -> np.ndarray:
         """Measured minus simulated, ``(n_total, n_measured)``, in the layout of ``engine.passes.records``."""
-        records = self.engine.passes.records
+        passes, sol = self.engine.passes, self.solution
         with np.errstate(all="ignore"):
-            return records.Y - self.simulated[:, list(records.measured)]
+            return passes.records.Y - passes.outputs(sol.theta, sol.X0, passes.segments(sol.starts))
 
     @property
     def log_evidence(self) -> float:
@@ -134,8 +134,8 @@ class Scorer:
         starts = passes.segment_starts(min(int(sol.length), int(passes.records.lengths.max())))
         origin = np.concatenate([main.passes.records.starts[k] + np.arange(a, b) for k, a, b in plan])
         with np.errstate(all="ignore"):
-            blocks = passes.sensitivities(theta, self.simulated[origin[starts]], passes.segments(starts), sol.w,
-                                          sol.ar)
+            w = np.atleast_2d(sol.w)[[k for k, _, _ in plan]]  # each window at its record's noise
+            blocks = passes.sensitivities(theta, self.simulated[origin[starts]], passes.segments(starts), w, sol.ar)
         H, g = blocks.H, blocks.g
         if not (np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
             return np.zeros(len(candidates))
@@ -173,7 +173,7 @@ class Scorer:
             out.append({"gain": float(post.log_evidence - base.posterior.log_evidence),
                         "fraction": residual_fraction(engine, sol),
                         "model": to_model(engine, sol, {"refine": {"log_evidence": float(post.log_evidence)}}),
-                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.w,
+                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.channel_w,
                         "horizon": record_horizon(engine, sol)})
         return out
 
@@ -189,7 +189,7 @@ class Scorer:
             return []
         model = self.fitted()
         system = model.to_system()
-        std = {m: 1.0 / np.sqrt(w) for m, w in zip(self.measured, self.solution.w)}
+        std = {m: 1.0 / np.sqrt(w) for m, w in zip(self.measured, self.solution.channel_w)}
         rng = np.random.default_rng(seed)
         out: list[float] = []
         for _ in range(n_bootstrap):

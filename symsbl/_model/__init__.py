@@ -2,6 +2,8 @@
 
 from .estimates import Equation, FitMethod, TermEstimate
 from .model import IdentifiedModel
+from .outputs import AccelerationOutput, AlgebraicOutput, Output, StateOutput
 from .path import ModelPath, PathEntry
 
-__all__ = ["Equation", "FitMethod", "IdentifiedModel", "ModelPath", "PathEntry", "TermEstimate"]
+__all__ = ["Equation", "FitMethod", "IdentifiedModel", "ModelPath", "PathEntry", "TermEstimate", "Output",
+           "StateOutput", "AccelerationOutput", "AlgebraicOutput"]

@@ -94,6 +94,8 @@ class Equation:
         The equation is given, not estimated: a kinematic relation ``x' = v`` (coefficients exact).
     runners_up : tuple of str
         The candidates next in line by equation-error evidence (what an output-error refinement tries).
+    algebraic : bool
+        The equation of an output, ``lhs = sum_i coef_i term_i`` (a force cell), not of a state's derivative.
     """
 
     lhs: str
@@ -104,6 +106,12 @@ class Equation:
     n_rows: int = 0
     fixed: bool = False
     runners_up: tuple = field(default=(), compare=False)
+    algebraic: bool = False
+
+    @property
+    def written(self) -> str:
+        """The left-hand side as printed: ``x'`` for a state's derivative, ``y`` for an output."""
+        return self.lhs if self.algebraic else f"{self.lhs}'"
 
     @classmethod
     def kinematic(cls, lhs: str, velocity) -> Equation:
@@ -112,7 +120,8 @@ class Equation:
         return cls(lhs, (term,), np.zeros((1, 1)), math.nan, math.nan, 0, fixed=True)
 
     @classmethod
-    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=()) -> Equation:
+    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=(),
+                 algebraic: bool = False) -> Equation:
         """The equation of a fitted :class:`~symsbl.RVM`: one term per kept column, in ``fit.active_`` order.
 
         Parameters
@@ -128,6 +137,8 @@ class Equation:
             Per kept term, the candidates the data cannot tell apart from it.
         runners_up : sequence of str
             The candidates next in line.
+        algebraic : bool
+            The equation of an output (see :attr:`algebraic`).
         """
         active = [int(i) for i in fit.active_]
         alternatives = alternatives or [()] * len(active)
@@ -138,7 +149,7 @@ class Equation:
             for pos, (i, e, alt) in enumerate(zip(active, exprs, alternatives))
         )
         return cls(lhs, terms, np.array(fit.sigma_), float(fit.noise_var_), float(fit.log_evidence_), int(n_rows),
-                   runners_up=tuple(runners_up))
+                   runners_up=tuple(runners_up), algebraic=algebraic)
 
     @property
     def coefs(self) -> np.ndarray:
@@ -180,4 +191,4 @@ class Equation:
             if t.alternatives:
                 body += " (indistinguishable here from " + ", ".join(pretty(a) for a in t.alternatives) + ")"
             parts.append(body)
-        return f"{self.lhs}' = " + (" ".join(parts) if parts else "0")
+        return f"{self.written} = " + (" ".join(parts) if parts else "0")

@@ -21,10 +21,10 @@ import numpy as np
 import sympy as sp
 
 from .._base.errors import ParameterError, expected
-from .._derivatives.kinematics import latent_states
 from .._simulation.ode import OdeSystem
 from .estimates import Equation, FitMethod
 from .modelfile import load_model, model_from_json, model_to_json, save_model
+from .outputs import Output, latent_of, state_outputs
 from .path import ModelPath
 
 __all__ = ["IdentifiedModel"]
@@ -39,7 +39,8 @@ class IdentifiedModel:
     states, inputs : tuple of casadi.SX
         Scalar symbols of the states (in equation order) and of the inputs.
     equations : tuple of Equation
-        One per state, same order as ``states``.
+        One per state, same order as ``states``, then one per algebraic output (``Equation.algebraic``: a
+        channel with an equation of its own, such as a force cell).
     metadata : dict
         Free-form provenance (derivative strategy, library size, sample rate ...).
     fit : FitMethod
@@ -55,6 +56,10 @@ class IdentifiedModel:
     path : ModelPath
         The candidate structures the model was chosen from, simplest first, with their evidence and
         cross-validated free-run error (empty when no choice was made).
+    outputs : tuple of Output
+        What each channel of the records is (:class:`~symsbl.StateOutput`, :class:`~symsbl.AccelerationOutput`,
+        :class:`~symsbl.AlgebraicOutput`); empty: the states of :attr:`measured` as they are (see
+        :attr:`observation`).
 
     Examples
     --------
@@ -90,12 +95,14 @@ class IdentifiedModel:
     measured: tuple | None = None
     joint_covariance: np.ndarray | None = field(default=None, compare=False, repr=False)
     path: ModelPath = field(default_factory=ModelPath, compare=False, repr=False)
+    outputs: tuple = ()
 
     def __post_init__(self):
         object.__setattr__(self, "fit", FitMethod(self.fit))
         object.__setattr__(self, "kinematics", tuple(tuple(p) for p in self.kinematics))
         if self.measured is not None:
             object.__setattr__(self, "measured", tuple(self.measured))
+        object.__setattr__(self, "outputs", tuple(self.outputs))
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -107,24 +114,42 @@ class IdentifiedModel:
         """Names of the inputs."""
         return tuple(u.name() for u in self.inputs)
 
+    @property
+    def state_equations(self) -> tuple[Equation, ...]:
+        """The equations of the states' derivatives, one per state, in state order."""
+        return tuple(eq for eq in self.equations if not eq.algebraic)
+
+    @property
+    def observation(self) -> tuple[Output, ...]:
+        """What each channel of the records is: :attr:`outputs`, or the measured states as they are."""
+        return self.outputs if self.outputs else state_outputs(self.measured_names)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """The columns the model was fitted to (its outputs)."""
+        return tuple(o.name for o in self.observation)
+
     def equation(self, lhs: str) -> Equation:
-        """The equation of the state called ``lhs``."""
+        """The equation of the state (or algebraic output) called ``lhs``."""
         for eq in self.equations:
             if eq.lhs == lhs:
                 return eq
-        raise ParameterError(expected("lhs", f"one of the states {list(self.state_names)}", lhs))
+        raise ParameterError(expected("lhs", f"one of the equations {[eq.lhs for eq in self.equations]}", lhs))
 
     def __str__(self) -> str:
         lines = [str(eq) for eq in self.equations]
+        for o in self.observation:
+            if o.kind == "acceleration":
+                lines.append(f"{o.name}: measures {o.equation}' (acceleration)")
         for name in self.latent_names:
             lines.append(f"{name}: latent (not measured); {self.convention(name)}")
         return "\n".join(lines)
 
     @property
     def latent_names(self) -> tuple[str, ...]:
-        """States that were not measured and are not the velocity of a measured position: their
+        """States that no output observes, neither directly nor through their position-velocity pair: their
         equations were found, and their trajectories simulated, with no record of them."""
-        return latent_states(self.state_names, self.measured_names, self.kinematics)
+        return latent_of(self.state_names, self.observation, self.kinematics)
 
     def convention(self, name: str) -> str:
         """How the scale (and sign) of the latent state ``name`` is fixed: ``z`` and ``s z`` give the same
@@ -144,7 +169,7 @@ class IdentifiedModel:
         t = sp.Symbol("t", real=True)
         out = []
         for eq in self.equations:
-            lhs = sp.Derivative(sp.Function(eq.lhs)(t), t)
+            lhs = sp.Function(eq.lhs)(t) if eq.algebraic else sp.Derivative(sp.Function(eq.lhs)(t), t)
             out.append(sp.Eq(lhs, eq.rhs_sympy(), evaluate=False))
         return out
 
@@ -153,7 +178,9 @@ class IdentifiedModel:
         lines = []
         for eq in self.equations:
             rhs = sp.Add(*[sp.Float(t.coef, digits) * t.sympy for t in eq.terms])
-            lines.append(rf"\dot{{{sp.latex(sp.Symbol(eq.lhs))}}} &= {sp.latex(rhs)}")
+            lhs = sp.latex(sp.Symbol(eq.lhs))
+            lhs = lhs if eq.algebraic else r"\dot{" + lhs + "}"
+            lines.append(rf"{lhs} &= {sp.latex(rhs)}")
         return r"\begin{aligned}" + r" \\ ".join(lines) + r"\end{aligned}"
 
     def _repr_latex_(self) -> str:
@@ -170,7 +197,10 @@ class IdentifiedModel:
 
     @property
     def measured_names(self) -> tuple[str, ...]:
-        """The states measured when the model was fitted (all of them unless :attr:`measured` says otherwise)."""
+        """The states measured as they are when the model was fitted (all of them unless :attr:`measured` or
+        :attr:`outputs` say otherwise)."""
+        if self.outputs:
+            return tuple(o.state for o in self.outputs if o.state is not None)
         return self.state_names if self.measured is None else self.measured
 
     def covariance(self) -> np.ndarray:
@@ -185,23 +215,27 @@ class IdentifiedModel:
 
     def to_system(self, name: str = "identified") -> OdeSystem:
         """The model as a CasADi :class:`~symsbl.OdeSystem` with the coefficients as
-        parameters (values: the posterior means)."""
+        parameters (values: the posterior means) and the outputs that are not states (accelerations,
+        algebraic outputs) as its outputs."""
 
         syms, values = self.parameters()
-        rhs, k = [], 0
+        rows, k = {}, 0
         for eq in self.equations:
             expr = ca.SX(0)
             for t in eq.terms:
                 expr = expr + syms[k] * t.expr
                 k += 1
-            rhs.append(expr)
+            rows[eq.lhs] = expr
+        states = dict(zip(self.state_names, self.states))
+        outputs = tuple((o.name, o.expression(states, rows)) for o in self.observation if o.state is None)
         return OdeSystem(
             states=tuple(self.states),
             inputs=tuple(self.inputs),
-            rhs=tuple(rhs),
+            rhs=tuple(rows[n] for n in self.state_names),
             parameters=tuple(syms),
             parameter_values=tuple(float(v) for v in values),
             name=name,
+            outputs=outputs,
         )
 
     # -- JSON -------------------------------------------------------------------------------

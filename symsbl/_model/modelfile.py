@@ -12,9 +12,12 @@ Schema (version 2; version 1 files, without ``fit``, are read unchanged)::
 
     {"format": "symsbl-model", "version": 2, "states": [...], "inputs": [...],
      "fit": "equation-error" | "output-error", "kinematics": {"x": "v", ...}, "measured": [...],
+     "outputs": [{"name": str, "kind": "state" | "acceleration" | "algebraic", "of": str (acceleration)}, ...]
+                (only when a channel is not a state as it is; else the measured states are the outputs),
      "latent": {"z": "how its scale is fixed", ...} (written for people; derived on reading),
      "covariance": [[...]] (output error: the joint covariance of all coefficients),
      "equations": [{"lhs": str, "rhs": str, "fixed": bool (a kinematic equation),
+                    "algebraic": true (only for the equation of an algebraic output, after the states'),
                     "terms": [{"term": str, "coef": float, "std": float, "alpha": float|null,
                                "evidence": float|null, "alternatives": [str, ...],
                                "fixed": true (only for a coefficient fixed by convention)}, ...],
@@ -38,6 +41,7 @@ from .._base.outputs import safe_output, write_atomic
 from .._symbolic.parse import parse_expression
 from .._symbolic.symbols import symbols as make_symbols
 from .estimates import Equation, TermEstimate
+from .outputs import AlgebraicOutput, check_outputs, output_from_json
 from .path import PATH_SOURCES, ModelPath
 
 __all__ = ["JSON_VERSION", "READABLE_VERSIONS", "MAX_MODEL_TERMS", "MAX_MODEL_NODES", "model_to_json",
@@ -79,6 +83,7 @@ def model_to_json(model) -> dict[str, Any]:
             "lhs": eq.lhs,
             "rhs": str(eq.rhs_sympy()),
             "fixed": eq.fixed,
+            **({"algebraic": True} if eq.algebraic else {}),
             "terms": [{"term": t.name, "coef": t.coef, "std": t.std, "alpha": _finite_or_none(t.alpha),
                        "evidence": _finite_or_none(t.evidence), "alternatives": list(t.alternatives),
                        **({"fixed": True} if t.fixed else {})}
@@ -96,6 +101,8 @@ def model_to_json(model) -> dict[str, Any]:
         "fit": model.fit.value,
         "kinematics": {x: v for x, v in model.kinematics},
         "measured": list(model.measured_names),
+        **({"outputs": [o.to_json() for o in model.outputs]} if any(o.kind != "state" for o in model.outputs)
+           else {}),
         "latent": {name: model.convention(name) for name in model.latent_names},
         "equations": equations,
         "metadata": _jsonable(model.metadata),
@@ -241,12 +248,15 @@ def _check_rhs(raw: dict, where: str, cas: dict, terms) -> None:
                                      "edit 'terms' (the source of truth) and delete or regenerate 'rhs'", raw=True))
 
 
-def _equation(raw, where: str, states, cas: dict, seen: list):
+def _equation(raw, where: str, states, cas: dict, seen: list, algebraic=()):
     if not isinstance(raw, dict):
         raise DataError(expected(where, "a JSON object", type(raw).__name__, raw=True))
     lhs = _field(raw, "lhs", where, str)
-    if lhs not in states or lhs in seen:
-        raise DataError(expected(f"{where}.lhs", f"one equation per state {list(states)}", lhs))
+    is_algebraic = _field(raw, "algebraic", where, bool, default=False, what="true or false")
+    if lhs not in (algebraic if is_algebraic else states) or lhs in seen:
+        what = (f"one equation per algebraic output {list(algebraic)}" if is_algebraic
+                else f"one equation per state {list(states)}")
+        raise DataError(expected(f"{where}.lhs", what, lhs))
     seen.append(lhs)
     raw_terms = _field(raw, "terms", where, list)
     terms = [_term(rt, f"{where}.terms[{i}]", cas, TermEstimate) for i, rt in enumerate(raw_terms)]
@@ -261,7 +271,8 @@ def _equation(raw, where: str, states, cas: dict, seen: list):
     fixed = _field(raw, "fixed", where, bool, default=False, what="true or false")
     return Equation(lhs=lhs, terms=tuple(terms), covariance=_covariance(raw, where, terms),
                     noise_var=math.nan if noise_std is None else noise_std**2,
-                    log_evidence=math.nan if log_evidence is None else log_evidence, n_rows=n_rows, fixed=fixed)
+                    log_evidence=math.nan if log_evidence is None else log_evidence, n_rows=n_rows, fixed=fixed,
+                    algebraic=is_algebraic)
 
 
 def _kinematics(doc, states) -> tuple:
@@ -273,11 +284,23 @@ def _kinematics(doc, states) -> tuple:
     return tuple(pairs.items())
 
 
-def _measured(doc, states) -> tuple | None:
+def _measured(doc, states, outputs) -> tuple | None:
     measured = _field(doc, "measured", _WHERE, list, default=None, what="a list of state names")
-    if measured is not None and (not measured or any(m not in states for m in measured)):
+    if measured is not None and ((not measured and not outputs) or any(m not in states for m in measured)):
         raise DataError(expected(f"{_WHERE}.measured", f"names among the states {list(states)}", measured))
     return None if measured is None else tuple(measured)
+
+
+#: Most outputs a model file may declare.
+MAX_OUTPUTS = 1000
+
+
+def _outputs(doc) -> tuple:
+    """The outputs a model file declares (none: its measured states are its outputs), read as data."""
+    raw = _field(doc, "outputs", _WHERE, list, default=[], what="a list of outputs")
+    if len(raw) > MAX_OUTPUTS:
+        raise DataError(expected(f"{_WHERE}.outputs", f"at most {MAX_OUTPUTS} outputs", len(raw)))
+    return tuple(output_from_json(o, f"{_WHERE}.outputs[{k}]") for k, o in enumerate(raw))
 
 
 def _joint_covariance(doc, n: int) -> np.ndarray | None:
@@ -336,24 +359,31 @@ def model_from_json(cls, doc):
     states, inputs, raw_equations = _header(doc)
     syms = tuple(ca.SX.sym(n) for n in states + inputs)
     cas = {s.name(): s for s in syms}
+    outputs = _outputs(doc)
+    algebraic = tuple(o.name for o in outputs if isinstance(o, AlgebraicOutput))
     _bounded(sum(len(raw["terms"]) for raw in raw_equations if isinstance(raw, dict) and
                  isinstance(raw.get("terms"), list)), MAX_MODEL_TERMS, "terms")
     seen: list = []
-    equations = [_equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen) for k, raw in enumerate(raw_equations)]
+    equations = [_equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen, algebraic)
+                 for k, raw in enumerate(raw_equations)]
     _bounded(sum(ca.n_nodes(t.expr) for eq in equations for t in eq.terms), MAX_MODEL_NODES, "expression nodes")
-    missing = [s for s in states if s not in seen]
+    missing = [s for s in states + algebraic if s not in seen]
     if missing:
-        raise DataError(expected(f"{_WHERE}.equations", f"one equation per state {list(states)}",
+        raise DataError(expected(f"{_WHERE}.equations", f"one equation per state {list(states)} and per algebraic "
+                                 f"output {list(algebraic)}" if algebraic else f"one equation per state {list(states)}",
                                  f"none for {missing}", raw=True))
-    order = {name: i for i, name in enumerate(states)}
+    order = {name: i for i, name in enumerate(states + algebraic)}
     equations.sort(key=lambda e: order[e.lhs])
+    kinematics = _kinematics(doc, states)
+    outputs = check_outputs(outputs, states, algebraic, kinematics, where=f"{_WHERE}.outputs")
     metadata = doc.get("metadata", {})
     if not isinstance(metadata, dict):
         raise DataError(expected(f"{_WHERE}.metadata", "a JSON object", type(metadata).__name__, raw=True))
     n_coefs = sum(len(eq.terms) for eq in equations)
     return cls(states=syms[:len(states)], inputs=syms[len(states):], equations=tuple(equations), metadata=metadata,
-               fit=doc.get("fit", "equation-error"), kinematics=_kinematics(doc, states),
-               measured=_measured(doc, states), joint_covariance=_joint_covariance(doc, n_coefs), path=_path(doc))
+               fit=doc.get("fit", "equation-error"), kinematics=kinematics,
+               measured=_measured(doc, states, outputs), joint_covariance=_joint_covariance(doc, n_coefs),
+               path=_path(doc), outputs=outputs)
 
 
 def load_model(cls, path):

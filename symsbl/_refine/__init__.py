@@ -153,13 +153,20 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
         rebased = Rebased(library, model)
     screening = select and rebased is not None and bool(set(model.state_names) - set(measured))
-    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule)
+    # with a state not measured, the screen and the selection first work on short segments, where a term missing
+    # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
+    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule,
+                                     short=screening)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
-        refined, screened = _refine_once(refined, used, measured, settings, select, rebased, screening, rule)
+        refined, screened = _refine_once(refined, used, measured, settings, select, rebased, screening, rule,
+                                         short=True)
         proposed.append(screened)
+        rounds += 1
+    if screening:
+        refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
         rounds += 1
     info = refined.metadata["refine"]
     stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
@@ -168,21 +175,28 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
         refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates,
                                    info["short_segments"])
     meta = refined.metadata["refine"]
+    if len(used) != len(records):  # windows of the records were fitted: their noise levels are not the records'
+        for channel in meta.get("noise", {}).values():
+            channel.pop("innovation_std_by_record", None)
     meta.update(samples=note, smoothed_sign=opts.smooth, rounds=rounds,
                 screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
                           for lhs in dict.fromkeys(k for p in proposed for k in p)},
                 seconds=round(clock(), 3))
     if meta["hypersensitive"]:
-        dt = float(np.mean([r.dt for r in used]))
-        warnings.warn(RefineWarning(
-            f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
-            f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
-            f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
-            "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
-            "does)"), stacklevel=2)
+        _warn_hypersensitive(meta, float(np.mean([r.dt for r in used])))
     if meta["doubts"] or not meta["hypersensitive"]:  # a hypersensitive record's residual follows its input anyway
         _warn(meta)
     return refined
+
+
+def _warn_hypersensitive(meta: dict, dt: float) -> None:
+    """One RefineWarning: the model amplifies a state error beyond :data:`PHI_STOP` within the record."""
+    warnings.warn(RefineWarning(
+        f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
+        f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
+        f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
+        "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
+        "does)"), stacklevel=3)
 
 
 def _warn(meta: dict) -> None:
@@ -236,14 +250,16 @@ def _rule(selection) -> SelectionRule:
 
 
 def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Rebased | None,
-                 screening: bool, rule: SelectionRule):
+                 screening: bool, rule: SelectionRule, short: bool = False):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
-    screen proposed."""
+    screen proposed. ``short``: every fit on segments of the first length of the continuation."""
     guess = state_guess(model, used, measured)
     candidates, twins = {}, {}
     if select and library is not None:
         candidates, twins = propose(model, library, design_rows(model, used, guess))
     engine = Engine(model, used, measured, settings, candidates, guess=guess)
+    if short:
+        engine.longest = engine.length0
     alpha = prior(engine)
     theta0 = np.zeros(len(engine.positions))
     theta0[engine.base] = engine.param.theta0[engine.base]

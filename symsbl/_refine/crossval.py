@@ -113,7 +113,6 @@ def cross_validate(passes: Passes, sol: Solution, cv: Folds) -> CrossValidation:
     seg = passes.segments(starts)
     X0 = simulated[starts]
     blocks = passes.sensitivities(sol.theta, X0, seg, sol.w, sol.ar)
-    measured = list(passes.records.measured)
     Y, valid = passes.records.Y, passes.valid[:n]
     spread = np.array([np.std(Y[valid[:, c], c]) for c in range(Y.shape[1])])
     spread[~(spread > 0)] = 1.0
@@ -127,7 +126,7 @@ def cross_validate(passes: Passes, sol: Solution, cv: Folds) -> CrossValidation:
                                                ar=sol.ar), sweeps=4)
         x0 = simulated[starts].copy()
         x0[np.searchsorted(starts, a)] = it.X0[np.searchsorted(lead_starts, a)]
-        sim = passes.simulate(theta, x0, seg)[:, measured]
+        sim = passes.outputs(theta, x0, seg)
         rows = slice(a + cv.lead, b)
         err = (Y[rows] - sim[rows]) / spread
         ok = valid[rows]

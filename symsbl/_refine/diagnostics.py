@@ -56,21 +56,27 @@ def _tests(engine, sol) -> list[ResidualTest]:
     n = passes.records.n_total
     seg = passes.segments(sol.starts)
     with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.simulate(sol.theta, sol.X0, seg)[:, list(passes.records.measured)]
+        R = passes.records.Y - passes.outputs(sol.theta, sol.X0, seg)
     U = passes.UN[:n]
     noise = sol.noise
     p = noise.order
     ends = np.append(seg.starts[1:], n)
+    # each record's innovations in units of its own noise: records of different noise levels pooled raw would
+    # inflate the correlations' spread (by 1.8 for two halves at 1:4) and the tests would reject white noise;
+    # and each record's inputs in units of their spread there, for the same reason
+    scale = np.sqrt(passes.per_record(sol.w))[seg.record_of_segment]
+    spread = np.array([np.std(U[a:a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
+    u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
     out = []
     for c, name in enumerate(engine.measured):
         es, us = [], []
-        for a, b in zip(seg.starts, ends):
+        for k, (a, b) in enumerate(zip(seg.starts, ends)):
             if b - a <= p + 2 * LAGS:
                 continue
-            e = innovations(R[a:b, c], noise.ar[c]) if p else R[a:b, c]
+            e = (innovations(R[a:b, c], noise.ar[c]) if p else R[a:b, c]) * scale[k, c]
             keep = np.isfinite(e)
             es.append(e[keep])
-            us.append(U[a + p:b][keep])
+            us.append(U[a + p:b][keep] * u_scale[k])
         if not es:
             continue
         e, u = np.concatenate(es), np.concatenate(us)

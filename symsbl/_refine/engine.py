@@ -18,7 +18,7 @@ from .._data.residuals import effective_fraction
 from .._derivatives.weakform import WeakForm
 from .._model import IdentifiedModel
 from .noise import innovations
-from .problem import Parameterisation, Records, choose_substeps
+from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
 from .rows import design_rows, state_guess
 from .sensitivity import Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
@@ -50,22 +50,25 @@ class Engine:
 
     def __init__(self, model: IdentifiedModel, records, measured, settings: Settings, candidates: dict,
                  guess: np.ndarray | None = None):
-        """``guess``: :func:`state_guess` of ``records`` when the caller has it (else computed)."""
-        self.model, self.records, self.measured, self.settings = model, records, tuple(measured), settings
+        """``measured``: the channels fitted (names of the model's outputs, or states as they are); ``guess``:
+        :func:`state_guess` of ``records`` when the caller has it (else computed)."""
+        self.outputs = resolve_outputs(model, measured)
+        self.model, self.records, self.settings = model, records, settings
+        self.measured = tuple(o.name for o in self.outputs)
         self.full = with_terms(model, candidates)
         self.positions = free_positions(self.full)
         own = set(free_positions(model))
         self.base = np.array([k for k, p in enumerate(self.positions) if p in own], dtype=int)
         self.keys = [complexity(self.full.equations[i].terms[j].sympy) for i, j in self.positions]
-        self.widths = smoothing_widths(model, records)
-        self.guess = state_guess(model, records, self.measured) if guess is None else guess
+        self.guess = state_guess(model, records, self.outputs) if guess is None else guess
+        self.widths = smoothing_widths(model, records, self.guess)
         fitted = smooth_model(self.full, self.widths) if settings.smooth else self.full
         self.param = Parameterisation.of(fitted)
         substeps = settings.substeps
         if substeps == "auto":
             substeps = choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate())
         self.substeps = int(substeps)
-        layout = Records.of(fitted, records, self.measured, settings.interpolation, self.substeps)
+        layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit)
         self.length0 = self._first_length()
         #: The noise model of the fits: "white", an autoregressive order, or "auto" until a fit has chosen one
@@ -152,7 +155,7 @@ def residual_fraction(engine: Engine, sol: Solution) -> float:
     n = passes.records.n_total
     seg = passes.segments(sol.starts)
     with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.simulate(sol.theta, sol.X0, seg)[:, list(passes.records.measured)]
+        R = passes.records.Y - passes.outputs(sol.theta, sol.X0, seg)
     valid = passes.valid[:n] & np.isfinite(R)
     noise = sol.noise
     if noise.order:  # the innovations: what the noise model leaves of the residual

@@ -72,8 +72,7 @@ def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.n
     if reach is None or reach >= data.n_samples:
         return x0, None
     # the stretch's growth, extrapolated, only suggests it: measured over the whole record, in one pass
-    passes, rows, w = _passes(smooth_model(model, smoothing_widths(model, [data])), data, observed, interpolation,
-                              substeps, jit=False)
+    passes, rows, w = _passes(_smoothed(model, data, observed), data, observed, interpolation, substeps, jit=False)
     with np.errstate(over="ignore", invalid="ignore"):
         blocks = passes.sensitivities(np.zeros(0), x0[None, :], passes.segments(np.array([0])), w)
         phi = _growth(blocks.end_S, 0, _state_scale(rows, x0[None, :]))
@@ -85,12 +84,18 @@ def short_horizons(model: IdentifiedModel, data: Trajectory, observed, *, interp
     """``data`` re-simulated in stretches of ``length`` samples, each from the initial state that best explains
     it: ``(n_samples, n_states)``. The validation of a model on a record it is hypersensitive on, where one
     simulation of the whole record says nothing (a state error outgrows the response within the record)."""
-    fitted = smooth_model(model, smoothing_widths(model, [data]))
+    fitted = _smoothed(model, data, observed)
     passes, guess, w = _passes(fitted, data, observed, interpolation, substeps, jit="auto")
     starts = passes.segment_starts(max(int(length), 8))
     seg = passes.segments(starts)
     it, _ = initial_states(passes, Iterate(np.zeros(0), guess[starts].copy(), seg, w), sweeps=8, rtol=0.0)
     return passes.simulate(np.zeros(0), it.X0, seg)[:data.n_samples]
+
+
+def _smoothed(model: IdentifiedModel, record: Trajectory, observed) -> IdentifiedModel:
+    """``model`` with each sign as the tanh it is fitted with, its widths from ``record`` (and the states it lets be
+    reconstructed)."""
+    return smooth_model(model, smoothing_widths(model, [record], state_guess(model, [record], tuple(observed))))
 
 
 def _passes(fitted, record, observed, interpolation, substeps, jit):
@@ -104,7 +109,7 @@ def _passes(fitted, record, observed, interpolation, substeps, jit):
 def _fit(model, record, observed, guess, interpolation, substeps, jit) -> tuple[np.ndarray, float]:
     """The initial state fitted to the whole of ``record`` from ``guess`` (kept when the fit is not finite), and
     the growth of a state error over the record."""
-    fitted = smooth_model(model, smoothing_widths(model, [record]))
+    fitted = _smoothed(model, record, observed)
     passes, rows, w = _passes(fitted, record, observed, interpolation, substeps, jit)
     start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])), w)
     it, _ = initial_states(passes, start, sweeps=8, rtol=0.0)

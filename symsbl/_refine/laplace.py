@@ -101,8 +101,8 @@ def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, 
         Prior precisions.
     cost : float
         ``E = 1/2 sum w r^2 + 1/2 sum alpha theta^2`` at ``theta``.
-    n_obs, w : ndarray, shape (n_measured,)
-        Measurements and noise precision per channel.
+    n_obs, w : ndarray, shape (n_measured,) or (n_records, n_measured)
+        Measurements and noise precision per channel (of each record).
     """
     if not (np.all(np.isfinite(H)) and np.all(np.isfinite(theta)) and np.isfinite(cost)):
         raise SimulationError(expected("output-error refinement", "a simulation and sensitivities that stay finite "
@@ -123,7 +123,9 @@ def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, 
     ev = np.maximum(ev, 1e-14 * max(float(ev.max()), 1e-300))  # round-off, not information
     cov = (V / ev) @ V.T / np.outer(d, d)
     log_det = float(np.sum(np.log(ev)) + 2 * np.sum(np.log(d)))
-    log_ev = (0.5 * float(np.sum(n_obs * np.log(w / (2 * np.pi)))) + 0.5 * float(np.sum(np.log(alpha))) - cost
+    n_obs, w = np.asarray(n_obs, dtype=float), np.asarray(w, dtype=float)
+    data = np.where(n_obs > 0, n_obs * np.log(np.where(n_obs > 0, w, 1.0) / (2 * np.pi)), 0.0)
+    log_ev = (0.5 * float(np.sum(data)) + 0.5 * float(np.sum(np.log(alpha))) - cost
               + 0.5 * n_x0 * np.log(2 * np.pi) - 0.5 * (log_det_x0 + log_det))
     return Posterior(np.array(theta, dtype=float), cov, float(log_ev), log_det_x0, n_x0, S, S_data)
 

@@ -2,14 +2,16 @@
 
 A model ``x_i' = sum_j c_ij term_ij(x, u)`` is linear in its coefficients. The output-error fit
 estimates the coefficients of every equation that is not fixed (kinematic equations ``x' = v`` are
-exact) from the *measured* states only; the others (an unmeasured velocity, a latent state) are
-simulated. The records are laid end to end, each starting with a reset, with the input of every
-sample interval at the integrator's stage nodes.
+exact; algebraic outputs ``y = sum_j c_j term_j(x, u)`` have equations too) from the *measured* channels,
+the model's outputs ``y = h(x, u, theta)`` (:mod:`symsbl._model.outputs`); the states are simulated. The
+records are laid end to end, each starting with a reset, with the input of every sample interval at the
+integrator's stage nodes.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import casadi as ca
@@ -18,10 +20,11 @@ import numpy as np
 from .._base.errors import DataError, expected
 from .._data.trajectory import Trajectory
 from .._model import IdentifiedModel
+from .._model.outputs import Output, StateOutput
 from .._simulation.signals import Sampled
 
 __all__ = ["Parameterisation", "Records", "INTERPOLATIONS", "check_records", "choose_substeps", "window_plan",
-           "N_WINDOWS", "SUBSTEP_TOL"]
+           "N_WINDOWS", "SUBSTEP_TOL", "resolve_outputs"]
 
 #: How a measured input runs between its samples (see :class:`symsbl.Sampled`).
 INTERPOLATIONS = ("linear", "cubic", "periodic", "hold")
@@ -68,8 +71,9 @@ class Parameterisation:
         """Number of free coefficients."""
         return self.theta0.size
 
-    def rhs(self, x: ca.SX, u: ca.SX, theta: ca.SX) -> ca.SX:
-        """The right-hand side ``(n_states, 1)`` at state ``x``, input ``u`` and free coefficients ``theta``."""
+    def rows(self, x: ca.SX, u: ca.SX, theta: ca.SX) -> dict[str, ca.SX]:
+        """The right-hand side of every equation (a state's derivative, an algebraic output) by its left-hand
+        side, at state ``x``, input ``u`` and free coefficients ``theta``."""
         model = self.model
         rows = [ca.SX(0) for _ in model.equations]
         k = 0
@@ -81,7 +85,24 @@ class Parameterisation:
         f = ca.vertcat(*rows)
         variables = ca.vertcat(*model.states, *model.inputs)
         values = ca.vertcat(x, u) if model.inputs else x
-        return ca.substitute(f, variables, values)
+        f = ca.substitute(f, variables, values)
+        return {eq.lhs: f[i] for i, eq in enumerate(model.equations)}
+
+    def rhs(self, x: ca.SX, u: ca.SX, theta: ca.SX) -> ca.SX:
+        """The right-hand side ``(n_states, 1)`` at state ``x``, input ``u`` and free coefficients ``theta``."""
+        rows = self.rows(x, u, theta)
+        return ca.vertcat(*[rows[n] for n in self.model.state_names])
+
+    def observe(self, outputs) -> Callable[[ca.SX, ca.SX, ca.SX], ca.SX]:
+        """The function ``(x, u, theta) -> y`` of the ``outputs`` (an SX column, one row per output)."""
+        names = self.model.state_names
+
+        def h(x: ca.SX, u: ca.SX, theta: ca.SX) -> ca.SX:
+            states = {n: x[i] for i, n in enumerate(names)}
+            rows = self.rows(x, u, theta) if any(o.state is None for o in outputs) else {}
+            return ca.vertcat(*[o.expression(states, rows) for o in outputs])
+
+        return h
 
     def coefficients(self, theta: np.ndarray) -> list[np.ndarray]:
         """Per equation, its coefficients with the free ones set to ``theta``."""
@@ -122,8 +143,10 @@ class Records:
         The step that ends at each sample (0 at a record's first sample).
     starts, lengths : ndarray of int
         First row and number of samples of each record.
-    measured : tuple of int
-        Indices of the measured states among the model's states.
+    outputs : tuple of Output
+        The measured channels, the columns of ``Y`` (see :mod:`symsbl._model.outputs`).
+    state_index : tuple of int or None
+        When every channel is a state as it is: their indices among the model's states (else None).
     """
 
     Y: np.ndarray
@@ -131,41 +154,51 @@ class Records:
     DT: np.ndarray
     starts: np.ndarray
     lengths: np.ndarray
-    measured: tuple
+    outputs: tuple
     interpolation: str
     substeps: int
     UN: np.ndarray
+    state_index: tuple | None = None
 
     @property
     def n_outputs(self) -> int:
         """Measured channels."""
-        return len(self.measured)
+        return len(self.outputs)
 
-    def observe(self, x: ca.SX, u: ca.SX, theta: ca.SX) -> ca.SX:
-        """The measured channels at state ``x``, input ``u`` and coefficients ``theta``."""
-        return ca.vertcat(*[x[i] for i in self.measured])
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The measured channels' names (the columns of ``Y``)."""
+        return tuple(o.name for o in self.outputs)
+
+    @property
+    def row_record(self) -> np.ndarray:
+        """The record of every row, ``(n_total,)``."""
+        return np.repeat(np.arange(len(self.lengths)), self.lengths)
 
     @classmethod
     def of(cls, model: IdentifiedModel, records, measured, interpolation: str, substeps: int) -> Records:
-        """Lay out ``records`` (Trajectories holding the measured states and the model's inputs)."""
-        names = model.state_names
-        idx = tuple(names.index(m) for m in measured)
+        """Lay out ``records`` (Trajectories holding the measured channels and the model's inputs); ``measured``
+        are the channels' names or :class:`~symsbl._model.outputs.Output` objects (see :func:`resolve_outputs`)."""
+        outputs = resolve_outputs(model, measured)
+        names = tuple(o.name for o in outputs)
         n_nodes = 2 * substeps + 1
         lengths = np.array([r.n_samples for r in records])
         starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
         total = int(lengths.sum())
-        Y = np.empty((total, len(idx)))
+        Y = np.empty((total, len(names)))
         UD = np.zeros((total, n_nodes * len(model.input_names)))
         UN = np.zeros((total, len(model.input_names)))
         DT = np.zeros(total)
         for r, s in zip(records, starts):
             n = r.n_samples
-            Y[s:s + n] = np.column_stack([r.column(m) for m in measured])
+            Y[s:s + n] = np.column_stack([r.column(m) for m in names])
             UD[s + 1:s + n] = _stage_values(r, model.input_names, interpolation, substeps)
             if model.input_names:
                 UN[s:s + n] = np.column_stack([r.column(u) for u in model.input_names])
             DT[s + 1:s + n] = np.diff(r.t)
-        return cls(Y, UD, DT, starts, lengths, idx, interpolation, substeps, UN)
+        states = model.state_names
+        index = tuple(states.index(o.state) for o in outputs) if all(o.state is not None for o in outputs) else None
+        return cls(Y, UD, DT, starts, lengths, outputs, interpolation, substeps, UN, index)
 
     @property
     def n_total(self) -> int:
@@ -173,21 +206,45 @@ class Records:
         return int(self.lengths.sum())
 
 
+def resolve_outputs(model: IdentifiedModel, measured) -> tuple[Output, ...]:
+    """The outputs named ``measured``: the model's outputs of those names (:attr:`IdentifiedModel.observation`),
+    a state as it is otherwise; Output objects are taken as they are."""
+    by_name = {o.name: o for o in model.observation}
+    out = []
+    for m in measured:
+        if isinstance(m, Output):
+            out.append(m)
+        elif m in by_name:
+            out.append(by_name[m])
+        elif m in model.state_names:
+            out.append(StateOutput(m))
+        else:
+            raise DataError(expected("measured", f"outputs of the model {list(by_name)} or its states "
+                                     f"{list(model.state_names)}", m, raw=False))
+    return tuple(out)
+
+
 def check_records(model: IdentifiedModel, data, measured) -> tuple[list[Trajectory], tuple[str, ...]]:
-    """The records as a list and the measured states: every record must hold those and the model's inputs."""
+    """The records as a list and the measured channels (the model's outputs, or states as they are): every record
+    must hold those and the model's inputs."""
     records = [data] if isinstance(data, Trajectory) else list(data) if isinstance(data, (list, tuple)) else None
     if not records or not all(isinstance(r, Trajectory) for r in records):
         raise DataError(expected("data", "a Trajectory or a non-empty list of Trajectories", type(data).__name__,
                                  raw=True))
     available = set(records[0].state_names)
-    measured = tuple(m for m in model.state_names if m in available) if measured is None else tuple(measured)
-    if not measured or any(m not in model.state_names for m in measured):
-        raise DataError(expected("measured", f"states of the model {list(model.state_names)} present in the data",
+    if measured is None:
+        measured = tuple(o.name for o in model.observation if o.name in available)
+        if not measured and not model.outputs:  # a model fitted on other channels: its states in this data
+            measured = tuple(m for m in model.state_names if m in available)
+    measured = tuple(measured)
+    allowed = set(model.output_names) | set(model.state_names)
+    if not measured or any(m not in allowed for m in measured):
+        raise DataError(expected("measured", f"outputs of the model {sorted(allowed)} present in the data",
                                  list(measured), raw=False))
     for k, r in enumerate(records):
         missing = [n for n in list(measured) + list(model.input_names) if n not in r.state_names + r.input_names]
         if missing:
-            raise DataError(expected(f"data[{k}]", f"the measured states {list(measured)} and the inputs "
+            raise DataError(expected(f"data[{k}]", f"the measured channels {list(measured)} and the inputs "
                                      f"{list(model.input_names)}", f"a record without {missing}", raw=True))
         if r.n_samples < 4:
             raise DataError(expected(f"data[{k}]", "a record of at least 4 samples", f"{r.n_samples}", raw=True))

@@ -26,7 +26,8 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
     post, active = sol.posterior, list(sol.active)
     where = {engine.positions[k]: n for n, k in enumerate(active)}
     std = post.std
-    noise = {m: 1.0 / w for m, w in zip(engine.measured, sol.w)}
+    # an equation's noise is that of the channel that reads it: its state, or its right-hand side
+    noise = {o.state or o.equation: 1.0 / w for o, w in zip(engine.outputs, sol.channel_w)}
     n_samples = int(sum(r.n_samples for r in engine.records))
     equations, free_order = [], []
     for i, eq in enumerate(engine.full.equations):
@@ -43,22 +44,30 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
                                                                     -reduce_model(post, sol.alpha[active], [n])[0])),
                                    alternatives=eq.terms[j].alternatives) for j, n in zip(kept, idx))
         equations.append(Equation(eq.lhs, terms, _block(post.covariance, idx), noise.get(eq.lhs, math.nan),
-                                  post.log_evidence, n_samples, runners_up=eq.runners_up))
+                                  post.log_evidence, n_samples, runners_up=eq.runners_up, algebraic=eq.algebraic))
+    plain = all(o.kind == "state" for o in engine.outputs) and not engine.model.outputs
+    observed = dict(measured=engine.measured) if plain else dict(
+        measured=tuple(o.state for o in engine.outputs if o.state is not None), outputs=engine.outputs)
     model = dataclasses.replace(engine.model, equations=tuple(equations), fit=FitMethod.OUTPUT_ERROR,
-                                measured=engine.measured, metadata=dict(engine.model.metadata, **info))
+                                metadata=dict(engine.model.metadata, **info), **observed)
     return dataclasses.replace(model, joint_covariance=_joint(model, free_order, post.covariance))
 
 
 def noise_record(measured, sol: Solution) -> dict:
     """Per measured channel, its noise model as the model file records it: ``{"model": "white" | "AR(p)",
-    "ar": [a_1, ...], "innovation_std": sigma}``."""
+    "ar": [a_1, ...], "innovation_std": sigma}`` (pooled over the records), and with several records
+    ``"innovation_std_by_record": [sigma_1, ...]``."""
     out = {}
+    w = np.atleast_2d(sol.w)
+    pooled = sol.channel_w
     for c, name in enumerate(measured):
         ar = [] if sol.ar is None else [float(a) for a in sol.ar[c]]
         while ar and ar[-1] == 0.0:
             ar.pop()
         out[name] = {"model": f"AR({len(ar)})" if ar else "white", "ar": ar,
-                     "innovation_std": float(1.0 / math.sqrt(sol.w[c]))}
+                     "innovation_std": float(1.0 / math.sqrt(pooled[c]))}
+        if w.shape[0] > 1:
+            out[name]["innovation_std_by_record"] = [float(1.0 / math.sqrt(v)) for v in w[:, c]]
     return out
 
 

@@ -7,24 +7,28 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from .._derivatives.kinematics import estimate_velocity
+from .._derivatives.kinematics import completed_columns
 from .._model import IdentifiedModel
+from .problem import resolve_outputs
 
 __all__ = ["state_guess", "design_rows", "term_values"]
 
 
 def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
-    """Every state at every sample of ``records`` laid end to end: measured values (or a column given as a
-    guess), velocities from their positions, zeros."""
-    position_of = {v: x for x, v in model.kinematics}
+    """Every state at every sample of ``records`` laid end to end: the records' columns of the states (a column
+    of a state that is not measured is a guess only), the members of each kinematic pair reconstructed from the
+    measured ones (a velocity from its position, a position or velocity from an acceleration), zeros.
+    ``measured``: the channels (names or outputs) fitted."""
+    outputs = resolve_outputs(model, measured)
+    acceleration = {o.equation: o.name for o in outputs if o.kind == "acceleration"}
+    triples = [(x, v, acceleration.get(v)) for x, v in model.kinematics]
     rows = []
     for r in records:
         G = np.zeros((r.n_samples, len(model.states)))
+        columns = completed_columns(r, model.state_names, triples)
         for k, name in enumerate(model.state_names):
-            if name in measured or name in r.state_names:  # a column not measured: a guess only
-                G[:, k] = r.column(name)
-            elif name in position_of and position_of[name] in measured:
-                G[:, k] = estimate_velocity(r.t, r.column(position_of[name]))
+            if name in columns:
+                G[:, k] = columns[name]
         rows.append(G)
     return np.vstack(rows)
 

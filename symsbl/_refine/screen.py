@@ -113,7 +113,8 @@ def screen_terms(engine_of, model, records, solution, base_engine, library, thre
     origin = np.concatenate([main.records.starts[k] + np.arange(a, b) for k, a, b in plan])
     with np.errstate(all="ignore"):
         X0 = main.simulate(solution.theta, solution.X0, main.segments(solution.starts))[origin[starts]]
-        blocks = passes.sensitivities(theta, X0, passes.segments(starts), solution.w, solution.ar)
+        w = np.atleast_2d(solution.w)[[k for k, _, _ in plan]]  # each window at its record's noise
+        blocks = passes.sensitivities(theta, X0, passes.segments(starts), w, solution.ar)
     H, g = blocks.H, blocks.g
     if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
         return {}

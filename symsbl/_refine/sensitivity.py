@@ -231,7 +231,8 @@ class Passes:
 
     def __init__(self, param: Parameterisation, records: Records, jit="auto"):
         self.param, self.records = param, records
-        step, self.layout = sensitivity_step(param, records.observe, records.n_outputs, records.substeps)
+        step, self.layout = sensitivity_step(param, param.observe(records.outputs), records.n_outputs,
+                                             records.substeps)
         lay = self.layout
         # divides CHUNK, the padding and the plain simulation's calls
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
@@ -251,6 +252,8 @@ class Passes:
         self._reset = np.zeros(self.n_pad)
         self._x_start = np.zeros((self.n_pad, lay["nx"]))
         self.n_obs = self.valid.sum(axis=0)
+        self.row_record = np.concatenate([records.row_record, np.full(pad, len(records.lengths) - 1)])
+        self._output_map: ca.Function | None = None  # compiled when simulated outputs are asked for
         # consecutive valid samples ending at each row, per channel (a whitening filter needs its lags valid)
         self.valid_runs = _runs(self.valid)
 
@@ -294,8 +297,9 @@ class Passes:
         X0 : ndarray, shape (n_segments, n_states)
             The segments' initial states.
         seg : Segments
-        w : ndarray, shape (n_outputs,)
-            Noise precisions of the channels (of their innovations, with a noise model).
+        w : ndarray, shape (n_records, n_outputs) or (n_outputs,)
+            Noise precisions of the channels in each record (of their innovations, with a noise model); one row
+            serves every record.
         ar : ndarray, shape (n_outputs, p), optional
             Autoregressive noise model of each channel: the residual ``r`` is whitened to
             ``e_t = r_t + sum_i ar[c, i-1] r_{t-i}`` and so is each Jacobian row; the first ``p`` samples of a
@@ -307,7 +311,7 @@ class Passes:
         ar = np.zeros((ny, 0)) if ar is None else np.asarray(ar, dtype=float).reshape(ny, -1)
         self._load(seg, X0)
         theta = np.ascontiguousarray(theta, dtype=float)
-        sw = np.sqrt(np.asarray(w, dtype=float))
+        sw = np.sqrt(self.per_record(w))
         buf, call = self._sens_buffer
         z0 = np.zeros(lay["nz"])
         zout = np.empty((C, lay["nz"]))
@@ -361,7 +365,7 @@ class Passes:
                     EJ += ar[:, i - 1][None, :, None] * J_ext[order - i:order - i + n]
                 keep = keep & (seg.since[a:a + n, None] >= order) & (self.valid_runs[a:a + n] > order)
                 lag_r, lag_j = R_ext[-order:], J_ext[-order:]
-            weight = sw[None, :] * keep                                      # (n, ny)
+            weight = sw[self.row_record[a:a + n]] * keep                    # (n, ny)
             E = E * weight
             EJ = EJ * weight[:, :, None]
             p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
@@ -370,6 +374,40 @@ class Passes:
             last = seg.ends[(seg.ends >= a) & (seg.ends < a + n)]
             if last.size:
                 end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)
+
+    def per_record(self, w) -> np.ndarray:
+        """Noise precisions as ``(n_records, n_outputs)``: a row given once serves every record."""
+        w = np.asarray(w, dtype=float)
+        n_records = len(self.records.lengths)
+        return np.broadcast_to(w, (n_records, self.layout["ny"])) if w.ndim == 1 else w.reshape(n_records, -1)
+
+    def segment_rows(self, values: np.ndarray, seg: Segments) -> np.ndarray:
+        """Per-segment values ``(n_segments, ...)`` summed per record ``(n_records, ...)``."""
+        out = np.zeros((len(self.records.lengths),) + values.shape[1:])
+        np.add.at(out, seg.record_of_segment, values)
+        return out
+
+    def outputs(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
+        """The simulated channels of every sample ``(n_total, n_outputs)`` (what ``Y`` measures) from the segments'
+        initial states."""
+        X = self.simulate(theta, X0, seg)
+        index = self.records.state_index
+        if index is not None:
+            return X[:, list(index)]
+        n = self.records.n_total
+        if self._output_map is None:
+            lay = self.layout
+            x, u = ca.SX.sym("x", lay["nx"]), ca.SX.sym("u", self.UN.shape[1])
+            th = ca.SX.sym("theta", self.param.n_free)
+            h = ca.Function("outputs", [x, u, th], [self.param.observe(self.records.outputs)(x, u, th)])
+            self._output_map = h.map(CHUNK)
+        out = np.empty((self.n_pad, self.layout["ny"]))
+        theta = np.repeat(np.asarray(theta, dtype=float)[:, None], CHUNK, axis=1)
+        Xp = np.vstack([X, np.zeros((self.n_pad - n, X.shape[1]))])
+        with np.errstate(all="ignore"):
+            for a in range(0, self.n_pad, CHUNK):
+                out[a:a + CHUNK] = np.asarray(self._output_map(Xp[a:a + CHUNK].T, self.UN[a:a + CHUNK].T, theta)).T
+        return out[:n]
 
     def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""

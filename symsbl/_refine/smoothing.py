@@ -20,12 +20,15 @@ from .._symbolic.symbols import sympy_to_casadi
 __all__ = ["smoothing_widths", "sign_jumps", "smooth_model", "width_of"]
 
 
-def smoothing_widths(model: IdentifiedModel, records) -> dict:
+def smoothing_widths(model: IdentifiedModel, records, guess: np.ndarray | None = None) -> dict:
     """Per state, the width ``eps`` of ``tanh(x / eps)`` that stands for ``sign(x)`` while fitting: about 3e-4
-    of the state's standard deviation, rounded to a power of two."""
+    of the state's standard deviation (in the records, else in the ``guess`` of every state, ``(n_total,
+    n_states)``, where it is not zero), rounded to a power of two."""
     widths = {}
-    for name in model.state_names:
+    for k, name in enumerate(model.state_names):
         cols = [r.column(name) for r in records if name in r.state_names]
+        if not cols and guess is not None and np.any(guess[:, k]):
+            cols = [guess[:, k]]
         scale = float(np.std(np.concatenate(cols))) if cols else 1.0
         # on a grid of powers of two: records of similar scale (folds, windows, bootstrap copies) give the same
         # expressions and so share one compiled function

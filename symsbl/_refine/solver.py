@@ -25,7 +25,8 @@ from .laplace import Posterior, mackay_fixed_point, posterior
 from .noise import NoiseModel, choose_order, fit_ar
 from .sensitivity import Blocks, Passes, Segments
 
-__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "initial_states", "horizon", "PHI_STOP"]
+__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "pooled", "initial_states", "horizon",
+           "PHI_STOP"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -46,8 +47,9 @@ class Iterate:
     theta : ndarray, shape (n_free,)
     X0 : ndarray, shape (n_segments, n_states)
     seg : Segments
-    w : ndarray, shape (n_measured,)
-        Noise precisions of the measured channels (of their innovations, with an autoregressive noise model).
+    w : ndarray, shape (n_records, n_measured)
+        Noise precisions of the measured channels in each record (of their innovations, with an autoregressive
+        noise model).
     blocks : Blocks or None
     ar : ndarray, shape (n_measured, order), optional
         The autoregressive noise model (see :mod:`symsbl._refine.noise`); None: white noise.
@@ -100,16 +102,35 @@ class Solution:
     confirmed: dict = field(default_factory=dict)
     ar: np.ndarray | None = None
     n_kept: np.ndarray | None = None
+    #: Samples kept per record and channel, ``(n_records, n_measured)``.
+    n_kept_by_record: np.ndarray | None = None
 
     @property
     def noise(self) -> NoiseModel:
         """The noise model of the fit."""
-        return NoiseModel(np.zeros((self.w.size, 0)) if self.ar is None else self.ar)
+        return NoiseModel(np.zeros((self.w.shape[-1], 0)) if self.ar is None else self.ar)
+
+    @property
+    def channel_w(self) -> np.ndarray:
+        """One noise precision per channel, ``(n_measured,)``, the records pooled by their samples."""
+        return pooled(self.w, self.n_kept_by_record)
 
 
-def noise_precisions(Y: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Per channel, ``1 / sigma^2`` of white noise from third differences (robust: median absolute deviation)."""
-    return np.array([1.0 / max(third_difference_std(Y[valid[:, c], c]) ** 2, 1e-300) for c in range(Y.shape[1])])
+def noise_precisions(Y: np.ndarray, valid: np.ndarray, starts=None) -> np.ndarray:
+    """Per record and channel, ``1 / sigma^2`` of white noise from third differences (robust: median absolute
+    deviation), ``(n_records, n_channels)``; ``starts`` are the records' first rows (default: one record)."""
+    starts = [0] if starts is None else [int(a) for a in starts]
+    stops = starts[1:] + [len(Y)]
+    return np.array([[1.0 / max(third_difference_std(Y[a:b][valid[a:b, c], c]) ** 2, 1e-300)
+                      for c in range(Y.shape[1])] for a, b in zip(starts, stops)])
+
+
+def pooled(w: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
+    """One noise precision per channel from per-record ones ``(n_records, n_channels)``: the precision of the
+    pooled variance, the records weighted by their samples ``n`` (default equally)."""
+    w = np.atleast_2d(np.asarray(w, dtype=float))
+    n = np.ones_like(w) if n is None else np.broadcast_to(np.asarray(n, dtype=float), w.shape)
+    return np.sum(n, axis=0) / np.maximum(np.sum(n / w, axis=0), 1e-300)
 
 
 def restrict(H: np.ndarray, g: np.ndarray | None, active: np.ndarray, npar: int):
@@ -247,13 +268,15 @@ def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.
 
 # -- the noise model ---------------------------------------------------------------------------------
 def _reweight(passes: Passes, it: Iterate, n_free: int) -> np.ndarray:
-    """New noise precisions from the (whitened) residuals, the degrees of freedom shared in proportion to the
-    samples."""
-    n_kept = it.made.n_kept.sum(0)
+    """New noise precisions of every record and channel from the (whitened) residuals, the degrees of freedom
+    shared in proportion to the samples: one factor per channel on the precisions it has, so that the records
+    keep the ratios of their measured noise (re-estimated per record, a record the structure cannot yet simulate
+    would be written off as noise, and the fit would follow the others)."""
+    n_kept = passes.segment_rows(it.made.n_kept, it.seg)
     dof = n_free + len(it.seg) * passes.layout["nx"]
-    keep = 1.0 - dof / max(n_kept.sum(), 1)
-    ssr = it.made.rr.sum(0) / it.w
-    return n_kept * max(keep, 0.5) / np.maximum(ssr, 1e-300)
+    keep = max(1.0 - dof / max(n_kept.sum(), 1), 0.5)
+    weighted = passes.segment_rows(it.made.rr, it.seg).sum(axis=0)  # rr is already weighted by the precisions
+    return passes.per_record(it.w) * (n_kept.sum(axis=0) * keep / np.maximum(weighted, 1e-300))
 
 
 def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
@@ -487,7 +510,8 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     length0, growth : int
         First segment length (samples) and the factor by which it grows.
     w : ndarray, optional
-        Noise precisions per measured channel (default: from third differences).
+        Noise precisions per record and measured channel, ``(n_records, n_measured)`` (default: from third
+        differences; one row serves every record).
     update_noise, mackay : bool
         Re-estimate the noise precisions; re-estimate the prior precisions (MacKay).
     warm : Solution, optional
@@ -503,7 +527,8 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
     n_total = passes.records.n_total
-    w = noise_precisions(passes.Y[:n_total], passes.valid[:n_total]) if w is None else np.asarray(w, dtype=float)
+    w = (noise_precisions(passes.Y[:n_total], passes.valid[:n_total], passes.records.starts) if w is None
+         else np.array(passes.per_record(w)))
     full = int(passes.records.lengths.max())
     full = full if longest is None else min(int(longest), full)
     length = min(length0, full)
@@ -528,12 +553,15 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         n_pass += n
     Hs, _ = restrict(it.made.H, None, active, it.theta.size)
     cost = _objective(it.made, it.theta, alpha, active)
-    n_kept = it.made.n_kept.sum(0)
-    post = posterior(Hs, it.theta[active], alpha[active], cost, n_kept, it.w)
+    by_record = passes.segment_rows(it.made.n_kept, it.seg)
+    n_kept = by_record.sum(0)
+    w = np.array(passes.per_record(it.w))
+    post = posterior(Hs, it.theta[active], alpha[active], cost, by_record, w)
     if it.ar is not None and it.order:
         # the noise model's own Occam factor: 1/2 log n a coefficient (BIC), as its order was chosen
         occam = 0.5 * float(np.sum(np.count_nonzero(it.ar, axis=1) * np.log(np.maximum(n_kept, 2))))
         post = replace(post, log_evidence=post.log_evidence - occam)
     return Solution(theta=it.theta, X0=it.X0, starts=it.seg.starts.copy(), length=length, cost=float(cost),
-                    ssr=it.made.rr.sum(0) / it.w, w=it.w.copy(), alpha=alpha, posterior=post, H=it.made.H,
-                    stages=stages, n_pass=n_pass, active=active, ar=it.ar, n_kept=n_kept)
+                    ssr=passes.segment_rows(it.made.rr, it.seg) / w, w=w, alpha=alpha, posterior=post, H=it.made.H,
+                    stages=stages, n_pass=n_pass, active=active, ar=it.ar, n_kept=n_kept,
+                    n_kept_by_record=by_record)

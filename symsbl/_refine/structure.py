@@ -44,5 +44,5 @@ def with_terms(model: IdentifiedModel, additions: dict) -> IdentifiedModel:
         cov = np.zeros((n, n))
         cov[:len(eq.terms), :len(eq.terms)] = eq.covariance
         equations.append(Equation(eq.lhs, terms, cov, eq.noise_var, eq.log_evidence, eq.n_rows,
-                                  runners_up=eq.runners_up))
+                                  runners_up=eq.runners_up, algebraic=eq.algebraic))
     return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)

@@ -18,6 +18,7 @@ from .._base.progress import Progress
 from .._base.rule import DEFAULT as DEFAULT_RULE
 from .._base.rule import SelectionRule, complexity
 from .._model import Equation, IdentifiedModel
+from .._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
 from .._symbolic.library import Library
 from .rows import RegressionStats
 from .rvm import RVM
@@ -69,12 +70,13 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
     velocity_of = dict(kinematics)
     symbol = dict(zip(problem.state_names, states))
     equations = []
-    with Progress("fit", total=len(problem.state_names), unit="equations") as bar:
-        for k, lhs in enumerate(problem.state_names):
+    with Progress("fit", total=len(problem.target_names), unit="equations") as bar:
+        for k, lhs in enumerate(problem.target_names):
             if lhs in velocity_of:
                 equations.append(Equation.kinematic(lhs, symbol[velocity_of[lhs]]))
             else:
-                equations.append(_fit_equation(library, stats, k, lhs, template, keys, equivalence_nats))
+                equations.append(_fit_equation(library, stats, k, lhs, template, keys, equivalence_nats,
+                                               algebraic=lhs in problem.output_names))
             bar.update()
     return IdentifiedModel(
         states=states,
@@ -86,7 +88,18 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
             "n_rows": int(stats.n_samples),
         },
         kinematics=tuple(kinematics),
+        outputs=_outputs(problem),
     )
+
+
+def _outputs(problem: RegressionStats) -> tuple:
+    """The outputs the statistics' targets read: none beyond the states (then the states are), or the states,
+    the measured derivatives as accelerations and the algebraic outputs."""
+    if not problem.output_names and not problem.derivatives:
+        return ()
+    return (state_outputs([n for n in problem.state_names if n not in dict(problem.derivatives)])
+            + tuple(AccelerationOutput(column, state) for state, column in problem.derivatives)
+            + tuple(AlgebraicOutput(n) for n in problem.output_names))
 
 
 def selection_rule(selection: SelectionRule | None, rvm: RVM | None, equivalence_nats: float | None) -> SelectionRule:
@@ -117,18 +130,20 @@ def selection_rule(selection: SelectionRule | None, rvm: RVM | None, equivalence
     return rule
 
 
-def _fit_equation(library: Library, stats, k, lhs, template, keys, equivalence_nats) -> Equation:
-    """The sparse equation of state ``k``: RVM, support search, parsimony."""
+def _fit_equation(library: Library, stats, k, lhs, template, keys, equivalence_nats,
+                  algebraic: bool = False) -> Equation:
+    """The sparse equation of target ``k`` (a state's derivative or an algebraic output): RVM, support search,
+    parsimony."""
     first = fit_rvm(template, stats, k)
     if len(first.active_) == 0:
         return Equation(lhs, (), np.zeros((0, 0)), float(first.noise_var_), float(first.log_evidence_),
-                        int(stats.n_samples))
+                        int(stats.n_samples), algebraic=algebraic)
     active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
     _, kept, final = search.score(active)
     names = {col: tuple(library.terms[i].name for i in alternatives.get(col, ())) for col in kept}
     runners = [library.terms[c].name for c in search.runners_up(kept, final)]
     return Equation.from_fit(lhs, [library.terms[c].expr for c in kept], final, int(stats.n_samples),
-                             alternatives=[names[c] for c in kept], runners_up=runners)
+                             alternatives=[names[c] for c in kept], runners_up=runners, algebraic=algebraic)
 
 
 def _symbol(name: str):

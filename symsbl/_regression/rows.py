@@ -50,6 +50,10 @@ class RegressionStats:
         Targets (one per state) and inputs.
     derivative : Differentiator
         The derivative strategy used (resolved).
+    output_names : tuple of str
+        Algebraic outputs, regressed as they are on the library: their targets follow the states'.
+    derivatives : tuple of (str, str)
+        ``(state, column)``: states whose derivative a column measures (an accelerometer), their target.
     """
 
     stats: GramStats
@@ -57,6 +61,18 @@ class RegressionStats:
     state_names: tuple[str, ...]
     input_names: tuple[str, ...]
     derivative: Differentiator
+    output_names: tuple[str, ...] = ()
+    derivatives: tuple = ()
+
+    @property
+    def target_names(self) -> tuple[str, ...]:
+        """The targets in order: every state's derivative, then every algebraic output."""
+        return self.state_names + self.output_names
+
+    @property
+    def targets(self) -> dict:
+        """The keywords of :func:`regression_stats` that give the same targets on other records."""
+        return {"states": self.state_names, "derivatives": dict(self.derivatives), "outputs": self.output_names}
 
 
 def as_trajectories(data) -> list[Trajectory]:
@@ -99,12 +115,13 @@ def check_variation(names: Sequence[str], low: np.ndarray, high: np.ndarray, wha
 SQUARE_RANGE = (1e-290, 1e290)
 
 
-def check_representable(trajectories, columns, library: Library, evaluator: Evaluator, probe: int = 1024) -> None:
+def check_representable(trajectories, columns, library: Library, evaluator: Evaluator, probe: int = 1024,
+                        n_states: int | None = None) -> None:
     """Refuse data in units that put a library column's squares outside :data:`SQUARE_RANGE`: they would
     underflow (x**3 of 1e-60 silently dropped) or overflow in the Gram matrix. Probed on at most ``probe``
-    rows of each record."""
+    rows of each record (its first ``n_states`` state columns, default all, then its inputs)."""
     for traj, cols in zip(trajectories, columns):
-        Z = np.column_stack([traj.states, traj.inputs])[:, cols]
+        Z = np.column_stack([traj.states[:, :n_states], traj.inputs])[:, cols]
         rows = Z[np.unique(np.linspace(0, len(Z) - 1, min(probe, len(Z))).astype(int))]
         with np.errstate(over="ignore", under="ignore", invalid="ignore"):
             D = evaluator.evaluate(rows)
@@ -142,7 +159,8 @@ def _regroup(pairs: Iterator, rows: int) -> Iterator:
 
 
 def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differentiator, evaluator: Evaluator,
-                h: float, chunk_size: int, bar: Progress | None = None) -> GramStats:
+                h: float, chunk_size: int, bar: Progress | None = None, measured: np.ndarray | None = None,
+                replaced: tuple = ()) -> GramStats:
     """Statistics of rows ``r0:r1`` of a block of samples, evaluating about ``chunk_size`` samples at a time.
 
     Parameters
@@ -162,8 +180,18 @@ def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differenti
         Samples per dictionary evaluation.
     bar : Progress, optional
         Counts rows as they are reduced.
+    measured : ndarray, shape (n, n_measured), optional
+        Columns whose rows are targets as they are: the measured derivatives of the states at ``replaced``
+        (their targets replaced), then the algebraic outputs (targets appended).
+    replaced : tuple of int
+        The states whose targets the first ``len(replaced)`` columns of ``measured`` replace.
     """
     Y = diff.targets(np.arange(len(X)) * h, X)
+    if measured is not None and measured.shape[1]:
+        direct = diff.reduce(measured)  # the window averages (or samples) that pair with the dictionary's rows
+        Y = np.array(Y, dtype=float)
+        Y[:, list(replaced)] = direct[:, :len(replaced)]
+        Y = np.column_stack([Y, direct[:, len(replaced):]])
     stencil = diff.stencil
     step = max(1, chunk_size // stencil.stride) if stencil.stride else chunk_size
 
@@ -179,7 +207,7 @@ def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differenti
 
 
 def regression_stats(data, library: Library, *, derivative="weak", chunk_size: int = 4096,
-                     jit="auto") -> RegressionStats:
+                     jit="auto", states=None, derivatives=None, outputs=()) -> RegressionStats:
     """Accumulate the regression statistics of ``data`` over ``library`` chunk by chunk.
 
     Parameters
@@ -194,6 +222,14 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
         Samples per chunk: memory is ``O(chunk_size * n_terms + n_terms^2)`` whatever the length.
     jit : {"auto", True, False}
         Compile the dictionary with a C compiler when available.
+    states : sequence of str, optional
+        The state columns (default: every column that is not named in ``derivatives`` or ``outputs``).
+    derivatives : mapping of str to str, optional
+        ``{state: column}``: a column that measures the state's derivative (an accelerometer on a velocity) is
+        its target, reduced like the dictionary's rows, instead of the derivative the strategy estimates.
+    outputs : sequence of str
+        Columns regressed as they are on the library (algebraic outputs: a force cell); their targets follow
+        the states'.
 
     Examples
     --------
@@ -210,28 +246,42 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     trajectories = as_trajectories(data)
     if not isinstance(library, Library):
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
+    derivatives = dict(derivatives or {})
+    outputs = tuple(outputs)
+    first = trajectories[0]
+    names = (tuple(n for n in first.state_names if n not in set(derivatives.values()) | set(outputs))
+             if states is None else tuple(states))
+    direct = [derivatives[n] for n in names if n in derivatives] + list(outputs)
+    absent = [n for n in list(names) + direct if n not in first.state_names]
+    if absent or set(derivatives) - set(names):
+        raise DataError(expected("data", f"columns for the states {list(names)}, the derivatives {derivatives} and "
+                                 f"the outputs {list(outputs)}", f"columns {list(first.state_names)}", raw=True))
+    replaced = tuple(names.index(n) for n in names if n in derivatives)
+    trajectories = [tr.with_states(list(names) + direct) for tr in trajectories]
     for traj in trajectories:
         check_magnitude(traj)
     longest = max(trajectories, key=lambda tr: tr.n_samples)
-    diff = get_differentiator(derivative).resolve(longest.t, longest.states, n_terms=len(library))
+    n_states = len(names)
+    diff = get_differentiator(derivative).resolve(longest.t, longest.states[:, :n_states], n_terms=len(library))
     columns = []
     for traj in trajectories:  # validate everything before the expensive pass
         check_variation(traj.state_names, traj.states.min(axis=0), traj.states.max(axis=0))
         check_inputs_vary(traj, library)
-        columns.append(library_columns(traj.state_names, traj.input_names, library))
+        columns.append(library_columns(names, traj.input_names, library))
     n_rows = sum(diff.n_rows(traj.n_samples) for traj in trajectories)
     enough_rows(n_rows, len(library), f"{len(trajectories)} record(s) with {type(diff).__name__}")
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
-    check_representable(trajectories, columns, library, evaluator)
+    check_representable(trajectories, columns, library, evaluator, n_states=n_states)
     total = None
     with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
         for traj, cols in zip(trajectories, columns):
-            Z = np.ascontiguousarray(np.column_stack([traj.states, traj.inputs])[:, cols])
+            Z = np.ascontiguousarray(np.column_stack([traj.states[:, :n_states], traj.inputs])[:, cols])
             r0, r1 = diff.stencil.rows(traj.n_samples, True, True)
             if r1 <= r0:
                 continue
-            part = block_stats(traj.states, Z, r0, r1, diff, evaluator, traj.dt, chunk_size, bar)
+            part = block_stats(traj.states[:, :n_states], Z, r0, r1, diff, evaluator, traj.dt, chunk_size, bar,
+                               measured=traj.states[:, n_states:], replaced=replaced)
             total = part if total is None else total + part
     assert total is not None  # enough_rows() refused records without a row
-    traj = trajectories[0]
-    return RegressionStats(total, library, traj.state_names, traj.input_names, diff)
+    return RegressionStats(total, library, names, trajectories[0].input_names, diff, outputs,
+                           tuple((n, derivatives[n]) for n in names if n in derivatives))

@@ -37,6 +37,10 @@ class OdeSystem:
         substituted when the system is compiled, and :meth:`with_parameters` re-parameterises.
     parameter_values : tuple of float
     name : str
+    outputs : tuple of (str, ca.SX)
+        Measured channels that are not states, ``y = h(x, u; p)``, by name (an accelerometer is a velocity's
+        right-hand side, a force cell any expression of the states and inputs): :func:`symsbl.simulate` returns
+        them as columns after the states. A mapping ``{name: expression}`` is accepted.
 
     Raises
     ------
@@ -58,6 +62,11 @@ class OdeSystem:
     [Eq(Derivative(x1, t), x2), Eq(Derivative(x2, t), F - 10000*x1 - 20*x2)]
     >>> osc.with_parameters(c=40.0).to_sympy()[1]
     Eq(Derivative(x2, t), F - 10000*x1 - 40*x2)
+
+    An accelerometer on the mass is the velocity's right-hand side, an output:
+
+    >>> osc.with_outputs(a=osc.rhs[1]).output_names
+    ('a',)
     """
 
     states: tuple
@@ -66,6 +75,7 @@ class OdeSystem:
     parameters: tuple = ()
     parameter_values: tuple = ()
     name: str = "system"
+    outputs: tuple = ()
 
     def __post_init__(self):
         states = scalar_symbols(self.states, "states", SimulationError)
@@ -85,9 +95,30 @@ class OdeSystem:
         if free:
             raise SimulationError(expected("rhs", f"expressions of the declared symbols {sorted(known)}",
                                            f"expressions that also use {free}", "declare them", raw=True))
+        outputs = self._outputs(states + inputs + params, known)
         for attr, val in (("states", states), ("inputs", inputs), ("rhs", rhs), ("parameters", params),
-                          ("parameter_values", values)):
+                          ("parameter_values", values), ("outputs", outputs)):
             object.__setattr__(self, attr, val)
+
+    def _outputs(self, symbols, known: set) -> tuple:
+        """The outputs as ``((name, SX), ...)``, checked: distinct names unlike the symbols', declared symbols only."""
+        raw = self.outputs.items() if isinstance(self.outputs, dict) else self.outputs
+        out: list[tuple[str, ca.SX]] = []
+        for item in raw:
+            if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], str) and item[0]):
+                raise SimulationError(expected("outputs", "(name, expression) pairs or a mapping {name: expression}",
+                                               repr(item)[:60], raw=True))
+            name, expr = item
+            if name in known or name in {n for n, _ in out} or name == "t":
+                raise SimulationError(expected("outputs", "names unlike the states', inputs', parameters' and each "
+                                               "other's", name, raw=True))
+            expr = self._to_sx(expr, symbols)
+            free = sorted({s.name() for s in ca.symvar(expr)} - known)
+            if free:
+                raise SimulationError(expected(f"output {name!r}", f"an expression of the declared symbols "
+                                               f"{sorted(known)}", f"one that also uses {free}", raw=True))
+            out.append((name, expr))
+        return tuple(out)
 
     @staticmethod
     def _to_sx(expr, symbols) -> ca.SX:
@@ -115,6 +146,10 @@ class OdeSystem:
     @property
     def parameter_names(self) -> tuple[str, ...]:
         return tuple(s.name() for s in self.parameters)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return tuple(n for n, _ in self.outputs)
 
     @property
     def n_states(self) -> int:
@@ -162,7 +197,28 @@ class OdeSystem:
             raise SimulationError(expected("parameters", f"names among {list(self.parameter_names)} of {self.name!r}",
                                            unknown))
         new = tuple(float(values.get(n, v)) for n, v in zip(self.parameter_names, self.parameter_values))
-        return OdeSystem(self.states, self.inputs, self.rhs, self.parameters, new, self.name)
+        return OdeSystem(self.states, self.inputs, self.rhs, self.parameters, new, self.name, self.outputs)
+
+    def with_outputs(self, **outputs) -> OdeSystem:
+        """Return a copy with these outputs added, ``name=expression`` (e.g. ``a=system.rhs[1]``, an
+        accelerometer on the velocity ``x2``)."""
+        return OdeSystem(self.states, self.inputs, self.rhs, self.parameters, self.parameter_values, self.name,
+                         self.outputs + tuple(outputs.items()))
+
+    def output_function(self) -> ca.Function:
+        """``ca.Function("outputs", [x, u, p], [y (n_outputs, 1)])``, the parameters an input."""
+        return ca.Function("outputs", self._symbols(), [ca.vertcat(*[e for _, e in self.outputs])],
+                           ["x", "u", "p"], ["y"])
+
+    def evaluate_outputs(self, X, U=None, parameters=None) -> np.ndarray:
+        """The outputs on samples ``X`` ``(n_samples, n_states)`` and ``U``, at the parameter values (or the
+        ``parameters`` given): ``(n_samples, n_outputs)``."""
+        X = np.ascontiguousarray(np.atleast_2d(np.asarray(X, dtype=float)))
+        n = X.shape[0]
+        U = np.zeros((n, self.n_inputs)) if U is None else np.asarray(U, dtype=float).reshape(n, self.n_inputs)
+        p = np.asarray(self.parameter_values if parameters is None else parameters, dtype=float)
+        P = np.ascontiguousarray(np.broadcast_to(p, (n, p.size)))
+        return map_rows(self.output_function(), [X, np.ascontiguousarray(U), P], len(self.outputs))
 
     def to_sympy(self, *, substitute: bool = True) -> list:
         """The equations as ``sympy.Eq(Derivative(x_i, t), f_i)``, one per state.

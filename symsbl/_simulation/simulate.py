@@ -143,8 +143,8 @@ def simulate(
     Returns
     -------
     Trajectory
-        ``states`` on every ``t``, ``inputs`` (the signals sampled on ``t``), the system's names, and
-        ``diverged_at``.
+        ``states`` on every ``t`` (then the system's outputs, :attr:`OdeSystem.outputs`, as further columns),
+        ``inputs`` (the signals sampled on ``t``), the system's names, and ``diverged_at``.
 
     Raises
     ------
@@ -212,8 +212,14 @@ def simulate(
     bad = first_nonfinite_row(states)
     if t_fail is None and bad is not None:
         t_fail, reason = float(t[bad]), reason or "the state became non-finite (NaN/inf)"
+    names = system.state_names + system.output_names
+    if system.outputs:  # the measured channels that are not states, after them
+        n_ok = t.size if bad is None else bad
+        Y = np.full((t.size, len(system.outputs)), np.nan)
+        Y[:n_ok] = system.evaluate_outputs(states[:n_ok], U[:n_ok])
+        states = np.column_stack([states, Y])
     if t_fail is None:
-        return Trajectory(t, states, U, system.state_names, system.input_names)
+        return Trajectory(t, states, U, names, system.input_names)
     n_good = t.size if bad is None else bad
     if on_divergence == "raise" or n_good < 2:
         fix = ("pass on_divergence='truncate' to get the trajectory up to that point" if n_good >= 2
@@ -222,5 +228,4 @@ def simulate(
             fix += "; the right-hand side is discontinuous: use method='rk4' (or 'auto')"
         raise DivergenceError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
                                        f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True), t_fail)
-    return Trajectory(t[:n_good], states[:n_good], U[:n_good], system.state_names, system.input_names,
-                      diverged_at=t_fail)
+    return Trajectory(t[:n_good], states[:n_good], U[:n_good], names, system.input_names, diverged_at=t_fail)

@@ -2,7 +2,8 @@
 
 The identified :class:`~symsbl.IdentifiedModel` is turned into a CasADi
 :class:`~symsbl.OdeSystem` and simulated with the measured input of the held-out record
-from its first measured state. Errors per state:
+from the initial state that best explains its first stretch. Errors per channel the record holds (a state,
+or an output of the model: an acceleration, an algebraic output such as a force):
 
 - NRMSE: RMS of (measured - simulated) divided by the standard deviation of the measured signal;
 - fit: ``100 * (1 - NRMSE)`` percent, the usual system-identification "fit".
@@ -33,8 +34,9 @@ from .._base.checks import choice
 from .._base.errors import DataError, DivergenceError, SimulationError, expected
 from .._base.progress import Progress
 from .._data.trajectory import Trajectory, check_magnitude, noise_levels
-from .._derivatives.kinematics import estimate_velocity
+from .._derivatives.kinematics import completed_columns
 from .._model import IdentifiedModel
+from .._model.outputs import latent_of, state_outputs
 from .._refine.initial import fitted_start, short_horizons
 from .._refine.problem import INTERPOLATIONS
 from .._simulation.rk4 import run_rk4_batch
@@ -74,16 +76,18 @@ class Validation:
     measured : Trajectory
         The record the model was run on.
     simulated : Trajectory
-        The model's response (up to the divergence time if it diverged).
+        The model's response: its states, then its outputs that are not states (up to the divergence time if it
+        diverged).
     nrmse : dict[str, float]
-        Per state, RMS error / std of the measured signal (``inf`` if the model diverged).
+        Per channel of the record the model predicts (a state or an output), RMS error / std of the measured
+        signal (``inf`` if the model diverged).
     fit : dict[str, float]
-        Per state, ``100 * (1 - nrmse)`` percent.
+        Per channel, ``100 * (1 - nrmse)`` percent.
     diverged_at : float or None
         Time at which the simulation blew up, None if it completed.
     band : tuple of ndarray or None
-        ``(lower, upper)``, each ``(n_samples, n_states)``: mean -/+ 3 std of the Monte Carlo
-        responses over the coefficient posterior; None unless requested.
+        ``(lower, upper)``, each ``(n_samples, n_columns)`` (the columns of ``simulated``): mean -/+ 3 std of the
+        Monte Carlo responses over the coefficient posterior; None unless requested.
     status : str
         ``"ok"`` or ``"diverged"``.
     message : str
@@ -121,7 +125,8 @@ class Validation:
     def predictive_band(self) -> tuple | None:
         """``(lower, upper)`` for a new measurement: the model band widened by the noise.
 
-        Mean -/+ ``3 sqrt(sd_model**2 + noise_std**2)`` per state, each ``(n_samples, n_states)``;
+        Mean -/+ ``3 sqrt(sd_model**2 + noise_std**2)`` per column of ``simulated``, each
+        ``(n_samples, n_columns)``;
         None without a band. It assumes white measurement noise (a filtered or differentiated
         state has coloured noise, which the third-difference estimate under-reads) and leaves
         out the noise of the measured initial state the simulation starts from (negligible
@@ -137,7 +142,7 @@ class Validation:
 
     @property
     def coverage(self) -> dict | None:
-        """Per state, the fraction of measured samples inside :attr:`predictive_band` (None without one)."""
+        """Per channel, the fraction of measured samples inside :attr:`predictive_band` (None without one)."""
         band = self.predictive_band
         if band is None:
             return None
@@ -165,26 +170,30 @@ def _input_signal(traj: Trajectory, model: IdentifiedModel, interpolation: str):
 
 
 def _check(model, data, n_band) -> tuple[str, ...]:
-    """The arguments checked; the model's states the record holds (those compared)."""
+    """The arguments checked; the channels of the record the model predicts (those compared): its states and its
+    outputs that are not states."""
     if not isinstance(model, IdentifiedModel):
         raise DataError(expected("model", "an IdentifiedModel", type(model).__name__, raw=True))
     if not isinstance(data, Trajectory):
         raise DataError(expected("data", "a Trajectory", type(data).__name__, raw=True))
     if isinstance(n_band, bool) or not isinstance(n_band, (int, np.integer)) or n_band < 0:
         raise DataError(expected("n_band", "a number of Monte Carlo draws >= 0 (0: no band)", n_band))
-    most = int(min(MAX_BAND_DRAWS, BAND_MEMORY // (24 * max(data.n_samples, 1) * len(model.state_names))))
+    n_cols = len(model.state_names) + sum(o.state is None for o in model.observation)
+    most = int(min(MAX_BAND_DRAWS, BAND_MEMORY // (24 * max(data.n_samples, 1) * n_cols)))
     if n_band > most:
         raise DataError(expected("n_band", f"at most {most} Monte Carlo draws for {data.n_samples} samples of "
-                                 f"{len(model.state_names)} states ({BAND_MEMORY / 2**30:g} GiB held at once)", n_band,
+                                 f"{n_cols} channels ({BAND_MEMORY / 2**30:g} GiB held at once)", n_band,
                                  "100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"))
-    position_of = {v: x for x, v in model.kinematics}
-    observed = tuple(n for n in model.state_names if n in data.state_names)
-    missing = [n for n in model.state_names if n not in data.state_names and n not in model.latent_names
-               and not (n in position_of and position_of[n] in data.state_names)]
-    if missing or not observed:
-        note = " (a velocity may be missing when its position is there)" if model.kinematics else ""
-        raise DataError(expected("data", f"the model's states {list(model.state_names)}{note}",
-                                 f"states {list(data.state_names)} (missing {missing})", raw=True))
+    predicted = list(model.state_names) + [o.name for o in model.observation if o.state is None]
+    observed = tuple(n for n in predicted if n in data.state_names)
+    here = state_outputs([n for n in model.state_names if n in data.state_names]) + tuple(
+        o for o in model.observation if o.state is None and o.name in data.state_names)
+    unstarted = [n for n in latent_of(model.state_names, here, model.kinematics) if n not in model.latent_names]
+    if unstarted or not observed:
+        note = " (a member of a position-velocity pair may be missing when another, or its acceleration, is there)" \
+            if model.kinematics else ""
+        raise DataError(expected("data", f"the model's channels {predicted}{note}",
+                                 f"columns {list(data.state_names)} (missing {unstarted or predicted})", raw=True))
     bad = [f"{eq.lhs}: {t.name}" for eq in model.equations for t in eq.terms if not np.isfinite(t.coef)]
     if bad:
         raise DataError(expected("model", "finite coefficients", f"non-finite ones for {bad}", raw=True))
@@ -194,18 +203,13 @@ def _check(model, data, n_band) -> tuple[str, ...]:
 
 def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str,
                    substeps: int) -> tuple[np.ndarray, int | None]:
-    """The start of the re-simulation: the first sample (an unmeasured velocity from its position) or, ``how="fit"``,
-    the state that best explains the first stretch; and the samples in which a state error grows 10^4-fold."""
-    position_of = {v: x for x, v in model.kinematics}
-    first = []
-    for n in model.state_names:
-        if n in data.state_names:
-            first.append(data.column(n)[0])
-        elif n in position_of:
-            first.append(estimate_velocity(data.t, data.column(position_of[n]))[0])
-        else:
-            first.append(0.0)
-    x0 = np.array(first)
+    """The start of the re-simulation: the first sample (a member of a kinematic pair the record lacks
+    reconstructed from the others, a latent state zero) or, ``how="fit"``, the state that best explains the
+    first stretch of the ``observed`` channels; and the samples in which a state error grows 10^4-fold."""
+    acceleration = {o.equation: o.name for o in model.observation if o.kind == "acceleration"}
+    triples = [(x, v, acceleration.get(v)) for x, v in model.kinematics]
+    columns = completed_columns(data, model.state_names, triples)
+    x0 = np.array([columns[n][0] if n in columns else 0.0 for n in model.state_names])
     if how == "first":
         return x0, None
 
@@ -310,7 +314,9 @@ def validate_model(
     try:
         sim = simulate(system, data.t, **kw)
     except DivergenceError as exc:  # within the first step: the first two samples stand for the response
-        sim = Trajectory(data.t[:2], np.vstack([x0, x0]), None, model.state_names, diverged_at=exc.diverged_at)
+        first = np.concatenate([x0, system.evaluate_outputs(x0[None, :], _inputs_at(data, model)[:1])[0]])
+        sim = Trajectory(data.t[:2], np.vstack([first, first]), None, model.state_names + system.output_names,
+                         diverged_at=exc.diverged_at)
     n = sim.n_samples
     diverged = getattr(sim, "diverged_at", None)
     if diverged is not None or n < data.n_samples:
@@ -330,8 +336,12 @@ def validate_model(
         noise = {s: levels[s] for s in observed}
     result = Validation(data, sim, err, fit, None, band, "ok", "", noise, draws)
     if reach is not None and reach < data.n_samples:  # hypersensitive here: judged over short horizons
-        pieces = short_horizons(model, data, observed, interpolation=interpolation, substeps=substeps,
-                                length=max(reach // 4, 16))[:, [model.state_names.index(n) for n in observed]]
+        X = short_horizons(model, data, observed, interpolation=interpolation, substeps=substeps,
+                           length=max(reach // 4, 16))
+        columns = np.column_stack([X, system.evaluate_outputs(X, _inputs_at(data, model))])
+        names = model.state_names + system.output_names
+        pieces = columns[:, [names.index(n) for n in observed]]
+        X = np.column_stack([data.column(n) for n in observed])
         result = dataclasses.replace(result, horizon=float(reach * data.dt),
                                      short_nrmse=dict(zip(observed, map(float, nrmse(X, pieces)))))
     return dataclasses.replace(result, message=_message(result, n_band))
@@ -353,15 +363,28 @@ def _message(result, n_band: int) -> str:
     return "\n".join(lines)
 
 
+def _inputs_at(data: Trajectory, model: IdentifiedModel) -> np.ndarray:
+    """The model's inputs at the record's samples, ``(n_samples, n_inputs)``."""
+    if not model.input_names:
+        return np.zeros((data.n_samples, 0))
+    return np.column_stack([data.column(n) for n in model.input_names])
+
+
 def _band(model, system, data, kw, n_band, seed):
     draws = _draws(model, n_band, seed)
+    n_cols = system.n_states + len(system.outputs)
     if kw["method"] == "rk4":  # every draw in one compiled call per chunk: (n_samples, n_draws, n_states)
         signals = resolve_inputs(system, data.t, kw["inputs"])
         states, finite = run_rk4_batch(system, data.t, signals, kw["x0"], draws, substeps=kw["substeps"])
         runs = states[:, finite] if not finite.all() else states
+        if system.outputs and runs.shape[1]:  # each draw's outputs at its own coefficients
+            U = _inputs_at(data, model)
+            kept = draws[finite]
+            runs = np.concatenate([runs, np.stack([system.evaluate_outputs(runs[:, d], U, kept[d])
+                                                   for d in range(runs.shape[1])], axis=1)], axis=2)
     else:
         loop = _band_loop(system, data, kw, draws)
-        runs = np.stack(loop, axis=1) if loop else np.empty((data.n_samples, 0, system.n_states))
+        runs = np.stack(loop, axis=1) if loop else np.empty((data.n_samples, 0, n_cols))
     n = runs.shape[1] if runs.ndim == 3 else 0
     if n < 2:
         return None, n
