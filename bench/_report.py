@@ -110,7 +110,6 @@ def one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-
 def _machine():
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
@@ -118,11 +117,16 @@ def _machine():
             if line.startswith("model name"):
                 cpu = line.split(":", 1)[1].strip()
                 break
-    versions = [f"{name} {getattr(sys.modules[name], '__version__', '?')}"
-                for name in ("symsbl", "casadi", "numpy", "scipy") if name in sys.modules]
+    versions = [
+        f"{name} {getattr(sys.modules[name], '__version__', '?')}"
+        for name in ("symsbl", "casadi", "numpy", "scipy")
+        if name in sys.modules
+    ]
     load = f", load average {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
-    return (f"{platform.system()} {platform.release()}, {cpu}, {os.cpu_count()} CPUs{load}; "
-            f"Python {platform.python_version()}" + "".join(f", {v}" for v in versions))
+    return (
+        f"{platform.system()} {platform.release()}, {cpu}, {os.cpu_count()} CPUs{load}; "
+        f"Python {platform.python_version()}" + "".join(f", {v}" for v in versions)
+    )
 
 
 def _markdown(lines):
@@ -168,11 +172,21 @@ def write_page(name, doc):
         script = script.relative_to(ROOT)
     command = shlex.join(["python", str(script), *sys.argv[1:]])
     elapsed = time.perf_counter() - _START
-    facts = {"command": f"`{command}`", "date": datetime.date.today().isoformat(), "machine": _machine(),
-             "run time": f"{elapsed:.0f} s" if elapsed < 600 else f"{elapsed / 60:.0f} min"}
+    facts = {
+        "command": f"`{command}`",
+        "date": datetime.date.today().isoformat(),
+        "machine": _machine(),
+        "run time": f"{elapsed:.0f} s" if elapsed < 600 else f"{elapsed / 60:.0f} min",
+    }
     printed = "".join(sys.stdout.kept).splitlines() if isinstance(sys.stdout, _Copy) else []
-    parts = [MARKER, "# " + " ".join(title.split()).rstrip("."), "\n".join(f"- **{k}**: {v}" for k, v in facts.items()),
-             setup.strip(), "## Results", *_markdown(printed)]
+    parts = [
+        MARKER,
+        "# " + " ".join(title.split()).rstrip("."),
+        "\n".join(f"- **{k}**: {v}" for k, v in facts.items()),
+        setup.strip(),
+        "## Results",
+        *_markdown(printed),
+    ]
     PAGES.mkdir(parents=True, exist_ok=True)
     path = PAGES / f"{name}.md"
     path.write_text("\n\n".join(p for p in parts if p) + "\n")

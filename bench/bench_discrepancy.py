@@ -67,10 +67,12 @@ TRUTH = {"method": "rk4", "substeps": 16}
 
 def clean_records(system, fs=FS, seed=0):
     grid = symsbl.time_grid(4.0, fs), symsbl.time_grid(2.0, fs)
-    train = symsbl.simulate(system, grid[0], inputs=symsbl.Multisine(rms=FRMS, f_min=2.0, f_max=60.0, seed=1 + seed),
-                            **TRUTH)
-    held = symsbl.simulate(system, grid[1], inputs=symsbl.Multisine(rms=FRMS / 4, f_min=2.0, f_max=60.0,
-                                                                    seed=100 + seed), **TRUTH)
+    train = symsbl.simulate(
+        system, grid[0], inputs=symsbl.Multisine(rms=FRMS, f_min=2.0, f_max=60.0, seed=1 + seed), **TRUTH
+    )
+    held = symsbl.simulate(
+        system, grid[1], inputs=symsbl.Multisine(rms=FRMS / 4, f_min=2.0, f_max=60.0, seed=100 + seed), **TRUTH
+    )
     return train, held
 
 
@@ -106,12 +108,13 @@ def run(train, held, n_records, evidence, seed):
 
 def named(effect, size, noise, n_records, evidence, seed, misses) -> bool:
     train, held = clean_records(oscillator(EFFECTS[effect](size)), seed=seed)
-    report = run(train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 500), n_records, evidence,
-                 seed)
+    report = run(train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 500), n_records, evidence, seed)
     ok = [a.effect for a in report.added] == [effect]
     if not ok:
-        misses.append(f"{effect} {100 * size:g} %, noise {100 * noise:g} %, {n_records} record(s), {evidence}, "
-                      f"seed {seed}: {report.verdict}")
+        misses.append(
+            f"{effect} {100 * size:g} %, noise {100 * noise:g} %, {n_records} record(s), {evidence}, "
+            f"seed {seed}: {report.verdict}"
+        )
     return ok
 
 
@@ -126,8 +129,9 @@ def detection(args):
                 for evidence in args.evidence:
                     t0, limit = time.perf_counter(), None
                     for size in SIZES:
-                        if all(named(effect, size, noise, n_records, evidence, seed, misses)
-                               for seed in range(args.seeds)):
+                        if all(
+                            named(effect, size, noise, n_records, evidence, seed, misses) for seed in range(args.seeds)
+                        ):
                             limit = size
                             break
                     found = f"{100 * limit:g} %" if limit else f"> {100 * SIZES[-1]:g} %"
@@ -141,8 +145,10 @@ def detection(args):
 def cases(args):
     """Each effect (and two pairs together: Coulomb + cubic, drag + x|x|) at ``--size``: the coefficients found
     and the final model's held-out NRMSE against the noise-free truth, with one and two records."""
-    combos = [[e] for e in args.effects] + [["coulomb_friction", "cubic_stiffness"],
-                                            ["quadratic_damping", "quadratic_stiffness"]]
+    combos = [[e] for e in args.effects] + [
+        ["coulomb_friction", "cubic_stiffness"],
+        ["quadratic_damping", "quadratic_stiffness"],
+    ]
     print(f"size {100 * args.size:g} % of the force, noise {', '.join(f'{100 * n:g} %' for n in args.noise)}")
     print("| hidden | noise | records | verdict | coefficient error | gap error | held-out NRMSE vs truth | time |")
     print("|---|---|---|---|---|---|---|---|")
@@ -154,21 +160,30 @@ def cases(args):
                 for seed in range(args.seeds):
                     train, held = clean_records(system, seed=seed)
                     t0 = time.perf_counter()
-                    report = run(train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 500),
-                                 n_records, "output-error", seed)
+                    report = run(
+                        train.with_noise(noise, seed=seed),
+                        held.with_noise(noise, seed=seed + 500),
+                        n_records,
+                        "output-error",
+                        seed,
+                    )
                     dt = time.perf_counter() - t0
                     errs, gap = [], "-"
                     for a in report.added:
                         if a.effect in SCALE:
                             true = -SCALE[a.effect](args.size) / M
-                            errs.append(f"{a.effect} {100 * (a.coef / true - 1):+.2f} % "
-                                        f"({(a.coef - true) / a.std * np.sign(true):+.1f} std)")
+                            errs.append(
+                                f"{a.effect} {100 * (a.coef / true - 1):+.2f} % "
+                                f"({(a.coef - true) / a.std * np.sign(true):+.1f} std)"
+                            )
                         if a.effect == "clearance":
                             gap = f"{100 * (a.shape / (0.5 * X) - 1):+.2f} %"
                     truth = symsbl.validate_model(report.final, held, method="rk4")
-                    print(f"| {' + '.join(combo)} | {100 * noise:g} % | {n_records} | {report.verdict} | "
-                          f"{'; '.join(errs) or '-'} | {gap} | {100 * max(truth.nrmse.values()):.3f} % | {dt:.0f} s |",
-                          flush=True)
+                    print(
+                        f"| {' + '.join(combo)} | {100 * noise:g} % | {n_records} | {report.verdict} | "
+                        f"{'; '.join(errs) or '-'} | {gap} | {100 * max(truth.nrmse.values()):.3f} % | {dt:.0f} s |",
+                        flush=True,
+                    )
 
 
 def coloured(traj, noise, seed):
@@ -184,8 +199,11 @@ def coloured(traj, noise, seed):
 
 NULL = {
     "linear, white noise": (lambda: clean_records(oscillator(lambda x, v: 0 * v)), BASE, "white"),
-    "Duffing with its cubic term": (lambda: clean_records(oscillator(lambda x, v: 0 * v, k3=0.3 * FA / X**3)),
-                                    BASE + ", x**3", "white"),
+    "Duffing with its cubic term": (
+        lambda: clean_records(oscillator(lambda x, v: 0 * v, k3=0.3 * FA / X**3)),
+        BASE + ", x**3",
+        "white",
+    ),
     "coloured noise (100 Hz band)": (lambda: clean_records(oscillator(lambda x, v: 0 * v)), BASE, "coloured"),
     "400 Hz sampling": (lambda: clean_records(oscillator(lambda x, v: 0 * v), fs=400.0), BASE, "white"),
 }
@@ -225,8 +243,12 @@ def chain(extra_on, share):
     def system(k3):
         f1 = k3 * x1**3 if extra_on == 1 else 0
         f2 = k3 * x2**3 if extra_on == 2 else 0
-        rhs = (v1, (F - 3 * v1 - 2e4 * x1 - 2 * (v1 - v2) - 1.2e4 * (x1 - x2) - f1) / m1, v2,
-               (-2 * (v2 - v1) - 1.2e4 * (x2 - x1) - f2) / m2)
+        rhs = (
+            v1,
+            (F - 3 * v1 - 2e4 * x1 - 2 * (v1 - v2) - 1.2e4 * (x1 - x2) - f1) / m1,
+            v2,
+            (-2 * (v2 - v1) - 1.2e4 * (x2 - x1) - f2) / m2,
+        )
         return symsbl.OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "chain")
 
     peak = float(np.max(np.abs(clean_records(system(0.0))[0].column(f"x{extra_on}"))))
@@ -247,8 +269,14 @@ def beyond(args):
     cases_ = {}
     for mass in (1, 2):
         system, true, _ = chain(mass, args.size)
-        cases_[f"chain, cubic spring on mass {mass}"] = (system, CHAIN_BASE, {"kinematics": {"x1": "v1", "x2": "v2"}},
-                                                          "cubic_stiffness", f"x{mass}, v{mass}", true)
+        cases_[f"chain, cubic spring on mass {mass}"] = (
+            system,
+            CHAIN_BASE,
+            {"kinematics": {"x1": "v1", "x2": "v2"}},
+            "cubic_stiffness",
+            f"x{mass}, v{mass}",
+            true,
+        )
     kq, kv = args.size * FA / X**2, args.size * FA / (X**2 * V)
     cases_["quadratic spring x^2"] = (oscillator(lambda x, v: kq * x**2), BASE, {}, "x**2", None, -kq / M)
     cases_["x^2 v damping"] = (oscillator(lambda x, v: kv * x**2 * v), BASE, {}, "v*x**2", None, -kv / M)
@@ -257,8 +285,13 @@ def beyond(args):
             for seed in range(args.seeds):
                 train, held = clean_records(system, seed=seed)
                 t0 = time.perf_counter()
-                report = symsbl.discrepancy(train.with_noise(noise, seed=seed), base,
-                                            heldout=held.with_noise(noise, seed=seed + 500), seed=seed, **kwargs)
+                report = symsbl.discrepancy(
+                    train.with_noise(noise, seed=seed),
+                    base,
+                    heldout=held.with_noise(noise, seed=seed + 500),
+                    seed=seed,
+                    **kwargs,
+                )
                 dt = time.perf_counter() - t0
                 err = "-"
                 hit = [a for a in report.added if want in (a.effect, *a.terms) and (where is None or a.where == where)]
@@ -266,8 +299,11 @@ def beyond(args):
                     a = hit[0]
                     err = f"{100 * (a.coef / true - 1):+.2f} % ({(a.coef - true) / a.std * np.sign(true):+.1f} std)"
                 truth = symsbl.validate_model(report.final, held, method="rk4")
-                print(f"| {case} | {100 * noise:g} % | {seed} | {report.verdict} | {err} | "
-                      f"{100 * max(truth.nrmse.values()):.3f} % | {dt:.0f} s |", flush=True)
+                print(
+                    f"| {case} | {100 * noise:g} % | {seed} | {report.verdict} | {err} | "
+                    f"{100 * max(truth.nrmse.values()):.3f} % | {dt:.0f} s |",
+                    flush=True,
+                )
 
 
 #: effect -> its basis phi(x, v, gap) in the information bound (sign smoothed as tanh(v / (1e-4 V)))
@@ -356,8 +392,10 @@ def information(args):
     base = clean_records(oscillator(lambda x, v: 0 * v))
     sims = {r: _simulator(BASIS[r], base) for r in rivals}
     lengths = [r.n_samples for r in base] * 2  # y: x of every record, then v of every record
-    print("delta^2 / 2 (nats) of each rival against the truth, two records (4 s + 2 s at a quarter of the force); "
-          "P(> 3 nats) for the closest effect")
+    print(
+        "delta^2 / 2 (nats) of each rival against the truth, two records (4 s + 2 s at a quarter of the force); "
+        "P(> 3 nats) for the closest effect"
+    )
     print("| hidden | size | noise | " + " | ".join(rivals) + " | closest effect | P(> 3 nats) |")
     print("|---|---|---|" + "---|" * len(rivals) + "---|---|")
     for effect in args.effects:
@@ -381,14 +419,16 @@ def information(args):
                 d2 = 2 * half[closest]
                 p3 = float(norm.cdf((d2 / 2 - 3) / np.sqrt(max(d2, 1e-300))))
                 cells = " | ".join("-" if r == effect else f"{half[r]:.3g}" for r in rivals)
-                print(f"| {effect} | {100 * size:g} % | {100 * noise:g} % | {cells} | {closest} | {p3:.2f} |",
-                      flush=True)
+                print(
+                    f"| {effect} | {100 * size:g} % | {100 * noise:g} % | {cells} | {closest} | {p3:.2f} |", flush=True
+                )
 
 
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--part", choices=["detection", "cases", "beyond", "false-alarms", "information", "all"],
-                   default="all")
+    p.add_argument(
+        "--part", choices=["detection", "cases", "beyond", "false-alarms", "information", "all"], default="all"
+    )
     p.add_argument("--size", type=float, default=0.01, help="effect size of --part cases (share of the force)")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--null-seeds", type=int, default=200)

@@ -28,19 +28,27 @@ def step_gains(effect, size, noise, seed):
     """The first step of one seed: ``(gain of effect or None, best gain, best label, null gains, added)``."""
     force = (lambda x, v: 0 * v) if effect == "none" else EFFECTS[effect](size)
     train, held = clean_records(oscillator(force), seed=seed)
-    report = symsbl.discrepancy(train.with_noise(noise, seed=seed), BASE,
-                                heldout=held.with_noise(noise, seed=seed + 500), seed=seed)
+    report = symsbl.discrepancy(
+        train.with_noise(noise, seed=seed), BASE, heldout=held.with_noise(noise, seed=seed + 500), seed=seed
+    )
     step = report.steps[0]
     best = max(step.scores, key=lambda s: s.evidence_gain)
     own = [s.evidence_gain for s in step.scores if s.effect == effect]
-    return (max(own) if own else None, best.evidence_gain, best.label, list(step.null_gains),
-            tuple(a.effect for a in report.added))
+    return (
+        max(own) if own else None,
+        best.evidence_gain,
+        best.label,
+        list(step.null_gains),
+        tuple(a.effect for a in report.added),
+    )
 
 
 def quantiles(values) -> str:
     q = np.percentile(values, [10, 50, 90, 99])
-    return (f"min {np.min(values):.2f}, q10 {q[0]:.2f}, median {q[1]:.2f}, q90 {q[2]:.2f}, q99 {q[3]:.2f}, "
-            f"max {np.max(values):.2f}")
+    return (
+        f"min {np.min(values):.2f}, q10 {q[0]:.2f}, median {q[1]:.2f}, q90 {q[2]:.2f}, q99 {q[3]:.2f}, "
+        f"max {np.max(values):.2f}"
+    )
 
 
 def report(effect, rows):
@@ -66,14 +74,18 @@ def main():
     p.add_argument("--seeds", type=int, default=30)
     p.add_argument("--first-seed", type=int, default=0)
     args = p.parse_args()
-    print(f"peak displacement {X:.4g} m, peak velocity {V:.4g} m/s, force amplitude {FA:.4g} N; "
-          f"size {100 * args.size:g} % of the force, noise {100 * args.noise:g} %, two records")
+    print(
+        f"peak displacement {X:.4g} m, peak velocity {V:.4g} m/s, force amplitude {FA:.4g} N; "
+        f"size {100 * args.size:g} % of the force, noise {100 * args.noise:g} %, two records"
+    )
     for effect in args.effects.split(","):
         if effect != "none" and effect not in EFFECTS:
             p.error(f"--effects: expected 'none' or one of {', '.join(EFFECTS)}, got {effect!r}")
         t0 = time.perf_counter()
-        rows = [step_gains(effect, args.size, args.noise, seed)
-                for seed in range(args.first_seed, args.first_seed + args.seeds)]
+        rows = [
+            step_gains(effect, args.size, args.noise, seed)
+            for seed in range(args.first_seed, args.first_seed + args.seeds)
+        ]
         report(effect, rows)
         print(f"- {time.perf_counter() - t0:.0f} s")
     _report.write_page("discrepancy-gains", __doc__)

@@ -49,8 +49,11 @@ def pysindy_model(setting):
     import pysindy as ps
 
     alpha, threshold = setting
-    return ps.SINDy(optimizer=ps.STLSQ(threshold=threshold, alpha=alpha, normalize_columns=True),
-                    feature_library=ps.PolynomialLibrary(degree=3), differentiation_method=ps.FiniteDifference())
+    return ps.SINDy(
+        optimizer=ps.STLSQ(threshold=threshold, alpha=alpha, normalize_columns=True),
+        feature_library=ps.PolynomialLibrary(degree=3),
+        differentiation_method=ps.FiniteDifference(),
+    )
 
 
 def pysindy_fit(data, setting):
@@ -107,8 +110,10 @@ def resimulation_error(states, reference):
 
 def pysindy_resimulation(model, data, deadline):
     runs = {}
-    for label, kw in (("pysindy default (LSODA, rtol 1e-12)", {}),
-                      ("LSODA, rtol 1e-8", {"integrator_kws": {"method": "LSODA", "rtol": 1e-8, "atol": 1e-10}})):
+    for label, kw in (
+        ("pysindy default (LSODA, rtol 1e-12)", {}),
+        ("LSODA, rtol 1e-8", {"integrator_kws": {"method": "LSODA", "rtol": 1e-8, "atol": 1e-10}}),
+    ):
         sim, seconds, reached = pysindy_simulate(model, data.states[0], data.t, deadline, **kw)
         err = resimulation_error(sim, data.states) if sim is not None else np.nan
         runs[label] = (seconds, reached, err)
@@ -137,23 +142,53 @@ def main():
     done = [v for v in runs.values() if v[1] >= t[-1]]
     t_py_sim = min((v[0] for v in done), default=np.inf)
 
-    table("Identification, Duffing, 1 s at 32768 Hz, same data and 20 candidate terms (best of 3)",
-          ["", "symsbl (s)", "pysindy (s)", "pysindy / symsbl"],
-          [["one fit (pysindy: at the chosen setting)", f"{t_sym:.3f}", f"{t_one:.3f}", f"{t_one / t_sym:.1f}"],
-           [f"choosing the setting (pysindy: {len(settings)} fits + AICc)", "none needed", f"{t_sweep:.2f}",
-            f"{(t_sweep + t_one) / t_sym:.0f} (sweep and fit)"],
-           ["re-simulate 1 s with its own simulator", f"{t_sym_sim:.3f}", f"{t_py_sim:.2f}",
-            f"{t_py_sim / t_sym_sim:.0f}"]])
-    table("pysindy re-simulation of its model, deadline 120 s",
-          ["integrator", "time (s)", "reached t (s)", "max |x1 error| / max |x1|"],
-          [[k, f"{v[0]:.2f}" + (" (stopped)" if v[1] < t[-1] else ""), f"{v[1]:.4f}", f"{v[2]:.1e}"]
-           for k, v in runs.items()])
-    table("Supports found (both should be exact) and re-simulation error",
-          ["", "x1' support", "x2' support", "exact", "max |x1 error| / max |x1|"],
-          [["symsbl", ", ".join(sorted(sym_support[0])), ", ".join(sorted(sym_support[1])), sym_support == TRUE,
-            f"{resimulation_error(sim.states, data.states):.1e}"],
-           ["pysindy (AICc)", ", ".join(sorted(py_support[0])), ", ".join(sorted(py_support[1])), py_support == TRUE,
-            f"{min((v[2] for v in done), default=np.nan):.1e}"]])
+    table(
+        "Identification, Duffing, 1 s at 32768 Hz, same data and 20 candidate terms (best of 3)",
+        ["", "symsbl (s)", "pysindy (s)", "pysindy / symsbl"],
+        [
+            ["one fit (pysindy: at the chosen setting)", f"{t_sym:.3f}", f"{t_one:.3f}", f"{t_one / t_sym:.1f}"],
+            [
+                f"choosing the setting (pysindy: {len(settings)} fits + AICc)",
+                "none needed",
+                f"{t_sweep:.2f}",
+                f"{(t_sweep + t_one) / t_sym:.0f} (sweep and fit)",
+            ],
+            [
+                "re-simulate 1 s with its own simulator",
+                f"{t_sym_sim:.3f}",
+                f"{t_py_sim:.2f}",
+                f"{t_py_sim / t_sym_sim:.0f}",
+            ],
+        ],
+    )
+    table(
+        "pysindy re-simulation of its model, deadline 120 s",
+        ["integrator", "time (s)", "reached t (s)", "max |x1 error| / max |x1|"],
+        [
+            [k, f"{v[0]:.2f}" + (" (stopped)" if v[1] < t[-1] else ""), f"{v[1]:.4f}", f"{v[2]:.1e}"]
+            for k, v in runs.items()
+        ],
+    )
+    table(
+        "Supports found (both should be exact) and re-simulation error",
+        ["", "x1' support", "x2' support", "exact", "max |x1 error| / max |x1|"],
+        [
+            [
+                "symsbl",
+                ", ".join(sorted(sym_support[0])),
+                ", ".join(sorted(sym_support[1])),
+                sym_support == TRUE,
+                f"{resimulation_error(sim.states, data.states):.1e}",
+            ],
+            [
+                "pysindy (AICc)",
+                ", ".join(sorted(py_support[0])),
+                ", ".join(sorted(py_support[1])),
+                py_support == TRUE,
+                f"{min((v[2] for v in done), default=np.nan):.1e}",
+            ],
+        ],
+    )
     print(f"pysindy settings chosen by AICc (alpha, threshold) per equation: {[settings[i] for i in picks]}")
 
     resimulation_tables(model, data, t)
@@ -168,17 +203,28 @@ def resimulation_tables(model, data, t):
         _, t_true = timed(lambda kw=kw: simulate(systems.duffing(), t, **kw), repeats=5, warmup=True)
         _, t_model = timed(lambda kw=kw: simulate(model.to_system(), t, **kw), repeats=5, warmup=True)
         rows.append([method, f"{1e3 * t_true:.1f}", f"{1e3 * t_model:.1f}", f"{t_model / t_true:.2f}"])
-    table("Re-simulating 1 s: identified model against the hand-written model",
-          ["method", "hand-written (ms)", "identified (ms)", "identified / hand-written"], rows)
+    table(
+        "Re-simulating 1 s: identified model against the hand-written model",
+        ["method", "hand-written (ms)", "identified (ms)", "identified / hand-written"],
+        rows,
+    )
 
     _, t0 = timed(lambda: validate_model(model, data), repeats=3)
     _, cold = timed(lambda: validate_model(model, data, n_band=50), repeats=1)  # compiles the batched RK4
     _, t50 = timed(lambda: validate_model(model, data, n_band=50), repeats=3)
     _, t10 = timed(lambda: validate_model(model, data, n_band=10), repeats=3)
-    table("Monte Carlo predictive band (validate_model on 1 s; all draws in one batched RK4 simulation)",
-          ["n_band=0 (s)", "n_band=50, first call (s)", "n_band=10 (s)", "n_band=50 (s)",
-           "per draw, 10 -> 50 draws (ms)", "one re-simulation (ms)"],
-          [[f"{t0:.3f}", f"{cold:.2f}", f"{t10:.2f}", f"{t50:.2f}", f"{1e3 * (t50 - t10) / 40:.1f}", rows[0][2]]])
+    table(
+        "Monte Carlo predictive band (validate_model on 1 s; all draws in one batched RK4 simulation)",
+        [
+            "n_band=0 (s)",
+            "n_band=50, first call (s)",
+            "n_band=10 (s)",
+            "n_band=50 (s)",
+            "per draw, 10 -> 50 draws (ms)",
+            "one re-simulation (ms)",
+        ],
+        [[f"{t0:.3f}", f"{cold:.2f}", f"{t10:.2f}", f"{t50:.2f}", f"{1e3 * (t50 - t10) / 40:.1f}", rows[0][2]]],
+    )
 
 
 if __name__ == "__main__":

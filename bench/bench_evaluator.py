@@ -101,10 +101,16 @@ def pysindy_rows(n_states, degree, Z, rows):
     lib = PolynomialLibrary(degree=degree).fit(aug)
     np.testing.assert_allclose(lib.transform(aug[:CHECK]), ev.evaluate(aug[:CHECK]), rtol=1e-12)
     out = np.empty((len(aug), len(ev.library)))
-    rows.append(("symsbl JIT, polynomial of (x,|x|) only", len(ev.library),
-                 median_time(lambda: ev.evaluate(aug, out=out))))
-    rows.append(("pysindy PolynomialLibrary, same columns", len(ev.library),
-                 median_time(lambda: lib.transform(aug), 2, warmup=False)))
+    rows.append(
+        ("symsbl JIT, polynomial of (x,|x|) only", len(ev.library), median_time(lambda: ev.evaluate(aug, out=out)))
+    )
+    rows.append(
+        (
+            "pysindy PolynomialLibrary, same columns",
+            len(ev.library),
+            median_time(lambda: lib.transform(aug), 2, warmup=False),
+        )
+    )
 
 
 def bench_case(n_states: int, degree: int) -> None:
@@ -140,16 +146,29 @@ def bench_case(n_states: int, degree: int) -> None:
     rows.append(("sympy lambdify(numpy, cse=True)", M, median_time(lambda: lam(Z), 2, warmup=False)))
     pysindy_rows(n_states, degree, Z, rows)
 
-    table(f"Eq. (21), {n_states} states + F, degree {degree}: M = {M} terms, N = {N:.0e}",
-          ["method", "M", "time (ms)", "Gterm/s", "x symsbl", "x copy"],
-          [[name, m, f"{t * 1e3:.1f}", f"{N * m / t / 1e9:.2f}", f"{t / t_jit * M / m:.2f}",
-            f"{t / t_copy * M / m:.2f}"] for name, m, t in rows])
+    table(
+        f"Eq. (21), {n_states} states + F, degree {degree}: M = {M} terms, N = {N:.0e}",
+        ["method", "M", "time (ms)", "Gterm/s", "x symsbl", "x copy"],
+        [
+            [
+                name,
+                m,
+                f"{t * 1e3:.1f}",
+                f"{N * m / t / 1e9:.2f}",
+                f"{t / t_jit * M / m:.2f}",
+                f"{t / t_copy * M / m:.2f}",
+            ]
+            for name, m, t in rows
+        ],
+    )
     print(f"JIT compile {compile_time:.2f} s; np.copyto of N x M float64: {t_copy * 1e3:.1f} ms")
 
 
 def main() -> None:
-    print("symsbl evaluator benchmark (median of a few repeats after warm-up). 'x symsbl' and 'x copy' are "
-          "time ratios per term: > 1 means slower than symsbl JIT / than copying an output-sized array.")
+    print(
+        "symsbl evaluator benchmark (median of a few repeats after warm-up). 'x symsbl' and 'x copy' are "
+        "time ratios per term: > 1 means slower than symsbl JIT / than copying an output-sized array."
+    )
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for n_states, degree in CASES:
         bench_case(n_states, degree)

@@ -26,14 +26,26 @@ FS, PERIOD = 1000.0, 4.096
 N = int(FS * PERIOD)
 #: (name, system parameters, true law {term: (parameter, sign, degree in x3)} or None, true force terms)
 CASES = [
-    ("Bouc-Wen n=1 (A 4e4, a 600, b -300)", dict(A=4e4, n=1, a=600.0, b=-300.0, m=1.5, c=6.0, k=3e4),
-     {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)}),
-    ("Bouc-Wen n=1 saturating (a = b = 250)", dict(A=6e4, n=1, a=250.0, b=250.0, m=2.0, c=10.0, k=3e4),
-     {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)}),
-    ("Bouc-Wen n=2 (a 2.8, b 1.2)", dict(A=4e4, n=2, a=2.8, b=1.2, m=1.2, c=5.0, k=4e4),
-     {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)}),
-    ("Bouc-Wen n=2 pinched (a 9, b -5)", dict(A=3e4, n=2, a=9.0, b=-5.0, m=1.0, c=8.0, k=2e4),
-     {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)}),
+    (
+        "Bouc-Wen n=1 (A 4e4, a 600, b -300)",
+        dict(A=4e4, n=1, a=600.0, b=-300.0, m=1.5, c=6.0, k=3e4),
+        {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)},
+    ),
+    (
+        "Bouc-Wen n=1 saturating (a = b = 250)",
+        dict(A=6e4, n=1, a=250.0, b=250.0, m=2.0, c=10.0, k=3e4),
+        {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)},
+    ),
+    (
+        "Bouc-Wen n=2 (a 2.8, b 1.2)",
+        dict(A=4e4, n=2, a=2.8, b=1.2, m=1.2, c=5.0, k=4e4),
+        {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)},
+    ),
+    (
+        "Bouc-Wen n=2 pinched (a 9, b -5)",
+        dict(A=3e4, n=2, a=9.0, b=-5.0, m=1.0, c=8.0, k=2e4),
+        {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)},
+    ),
     ("linear (nothing hidden)", dict(m=1.5, c=6.0, k=5e4), None),
     ("Duffing (nothing hidden)", dict(m=1.5, c=30.0, k=5e4, k3=3e9), None),
 ]
@@ -82,12 +94,18 @@ def run(name, params, law, noise, seed, periodic=True):
     clean = steady(system, 40.0, seed + 1, 4, 2) if periodic else transient(system, seed)
     x = clean.column("x1")
     rng = np.random.default_rng(100 + seed)
-    record = symsbl.Trajectory(clean.t - clean.t[0], (x + noise * x.std() * rng.standard_normal(x.size))[:, None],
-                               clean.inputs, ("x1",), ("F",))
+    record = symsbl.Trajectory(
+        clean.t - clean.t[0],
+        (x + noise * x.std() * rng.standard_normal(x.size))[:, None],
+        clean.inputs,
+        ("x1",),
+        ("F",),
+    )
     x1, x2, x3, F = symsbl.symbols("x1 x2 x3 F")
     start = time.perf_counter()
-    model = symsbl.identify(record, symsbl.paper([x1, x2, x3], [F], degree=3), states=("x1", "x2", "x3"),
-                            kinematics="x1:x2")
+    model = symsbl.identify(
+        record, symsbl.paper([x1, x2, x3], [F], degree=3), states=("x1", "x2", "x3"), kinematics="x1:x2"
+    )
     seconds = time.perf_counter() - start
     verdict = model.metadata["latent"]["verdict"]
     if law:
@@ -99,8 +117,11 @@ def run(name, params, law, noise, seed, periodic=True):
     truth = steady(system, 24.0, 50 + seed, 1, 2).column("x1")
     predicted = steady(model.to_system(), 24.0, 50 + seed, 1, 2).column("x1")
     held = float(np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std())
-    print(f"| {name}{'' if periodic else ', transient record'} | {100 * noise:g} % | {seed} | {verdict} | "
-          f"{'yes' if right else 'NO'} | {100 * worst:.3g} % | {100 * held:.3g} % | {seconds:.1f} s |", flush=True)
+    print(
+        f"| {name}{'' if periodic else ', transient record'} | {100 * noise:g} % | {seed} | {verdict} | "
+        f"{'yes' if right else 'NO'} | {100 * worst:.3g} % | {100 * held:.3g} % | {seconds:.1f} s |",
+        flush=True,
+    )
     return right, worst, held, seconds
 
 
@@ -110,15 +131,17 @@ def main():
     print("|---|---|---|---|---|---|---|---|")
     results = []
     for name, params, law in CASES:
-        for noise in ((0.01,) if quick else (0.005, 0.01, 0.02)):
-            for seed in ((0,) if quick else (0, 1)):
+        for noise in (0.01,) if quick else (0.005, 0.01, 0.02):
+            for seed in (0,) if quick else (0, 1):
                 results.append(run(name, params, law, noise, seed))
         if law:
             results.append(run(name, params, law, 0.01, 0, periodic=False))
     right = sum(r[0] for r in results)
-    print(f"\nright structure in {right}/{len(results)} runs; worst parameter error "
-          f"{100 * np.nanmax([r[1] for r in results]):.3g} %, worst held-out NRMSE "
-          f"{100 * max(r[2] for r in results):.3g} %, median time {np.median([r[3] for r in results]):.1f} s")
+    print(
+        f"\nright structure in {right}/{len(results)} runs; worst parameter error "
+        f"{100 * np.nanmax([r[1] for r in results]):.3g} %, worst held-out NRMSE "
+        f"{100 * max(r[2] for r in results):.3g} %, median time {np.median([r[3] for r in results]):.1f} s"
+    )
     _report.write_page("latent", __doc__)
 
 

@@ -55,7 +55,7 @@ def write_record(directory: Path, n: int) -> Path:
     x0 = np.zeros(2)
     states, forces = [], []
     for a in range(0, n, PIECE):
-        t = t_all[a:min(n, a + PIECE + 1)]
+        t = t_all[a : min(n, a + PIECE + 1)]
         piece = simulate(systems.duffing(), t, inputs=signal, x0=x0, method="rk4")
         x0 = piece.states[-1]
         keep = slice(0, min(PIECE, n - a))
@@ -91,9 +91,14 @@ class Clock:
 
 @contextlib.contextmanager
 def instrumented(clock: Clock):
-    targets = [(_evaluator.Evaluator, "evaluate", "dictionary"), (_gram, "_products", "Gram"),
-               (_fit, "fit_rvm", "RVM"), (_fit, "search_support", "support search"),
-               (stream, "_stream_stats", "statistics"), (stream, "refine_or_keep", "refinement")]
+    targets = [
+        (_evaluator.Evaluator, "evaluate", "dictionary"),
+        (_gram, "_products", "Gram"),
+        (_fit, "fit_rvm", "RVM"),
+        (_fit, "search_support", "support search"),
+        (stream, "_stream_stats", "statistics"),
+        (stream, "refine_or_keep", "refinement"),
+    ]
     originals = [(owner, name, clock.wrap(owner, name, stage)) for owner, name, stage in targets]
     try:
         yield
@@ -112,8 +117,14 @@ def profile(path: Path, n: int) -> list:
     stats = s.get("statistics", 0.0)
     reading = stats - s.get("dictionary", 0.0) - s.get("Gram", 0.0)
     found = ", ".join(model.equation("x2").names)
-    cells = [reading, s.get("dictionary", 0.0), s.get("Gram", 0.0), s.get("RVM", 0.0), s.get("support search", 0.0),
-             s.get("refinement", 0.0)]
+    cells = [
+        reading,
+        s.get("dictionary", 0.0),
+        s.get("Gram", 0.0),
+        s.get("RVM", 0.0),
+        s.get("support search", 0.0),
+        s.get("refinement", 0.0),
+    ]
     return [f"{n:.0e}"] + [f"{c:.2f}" for c in cells] + [f"{total:.2f}", model.fit.value, found]
 
 
@@ -127,9 +138,22 @@ def main():
         path = write_record(Path(tmp), max(sizes))
         identify_stream(open_npz(path, **NAMES, stop=min(sizes)), LIB)  # warm-up: compile
         rows = [profile(path, n) for n in sizes]
-    table("identify_stream end to end: seconds per stage (Duffing, 32768 Hz, Eq. 21 degree 3, 34 terms)",
-          ["N", "reading + derivatives", "dictionary", "Gram", "RVM", "support search", "refinement", "total",
-           "fit", "x2' terms"], rows)
+    table(
+        "identify_stream end to end: seconds per stage (Duffing, 32768 Hz, Eq. 21 degree 3, 34 terms)",
+        [
+            "N",
+            "reading + derivatives",
+            "dictionary",
+            "Gram",
+            "RVM",
+            "support search",
+            "refinement",
+            "total",
+            "fit",
+            "x2' terms",
+        ],
+        rows,
+    )
     write_page("profile", __doc__)
 
 

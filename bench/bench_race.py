@@ -81,8 +81,12 @@ def chain2(m1=1.0, m2=1.0, c1=20.0, c2=10.0, k1=1e4, k2=5e3, k3=2e8) -> OdeSyste
     q1, v1, q2, v2, F = symsbl.symbols("q1 v1 q2 v2 F")
     p = symsbl.symbols("m1 m2 c1 c2 k1 k2 k3")
     m1_, m2_, c1_, c2_, k1_, k2_, k3_ = p
-    rhs = (v1, (F - c1_ * v1 - k1_ * q1 - k2_ * (q1 - q2) - c2_ * (v1 - v2)) / m1_,
-           v2, (-k2_ * (q2 - q1) - c2_ * (v2 - v1) - k3_ * q2**3) / m2_)
+    rhs = (
+        v1,
+        (F - c1_ * v1 - k1_ * q1 - k2_ * (q1 - q2) - c2_ * (v1 - v2)) / m1_,
+        v2,
+        (-k2_ * (q2 - q1) - c2_ * (v2 - v1) - k3_ * q2**3) / m2_,
+    )
     return OdeSystem((q1, v1, q2, v2), (F,), rhs, p, (m1, m2, c1, c2, k1, k2, k3), "chain2")
 
 
@@ -120,8 +124,14 @@ HARDER = [
     Case("Duffing, 32768 Hz, 2 %", systems.duffing, noise=0.02),
     Case("Coulomb, 1000 Hz, 1 %", systems.coulomb, fs=1000.0, noise=0.01, extras=_velocity_sign),
     Case("Bouc-Wen, 1000 Hz, 1 %", lambda: systems.bouc_wen(n=2), fs=1000.0, noise=0.01, extras=_hysteresis),
-    Case("2-DOF chain, 1000 Hz, 1 %, multisine", chain2, fs=1000.0, noise=0.01, duration=4.0,
-         forcing=lambda seed: Multisine(rms=60.0, f_min=2.0, f_max=40.0, seed=100 + seed)),
+    Case(
+        "2-DOF chain, 1000 Hz, 1 %, multisine",
+        chain2,
+        fs=1000.0,
+        noise=0.01,
+        duration=4.0,
+        forcing=lambda seed: Multisine(rms=60.0, f_min=2.0, f_max=40.0, seed=100 + seed),
+    ),
 ]
 
 
@@ -129,8 +139,9 @@ def record(case, system, duration, forcing, seed):
     """Noisy record at ``case.fs``: simulated at ``case.sim_fs``, decimated, noise added."""
     step = round(case.sim_fs / case.fs)
     clean = simulate(system, time_grid(duration, case.sim_fs), inputs=forcing)
-    coarse = Trajectory(clean.t[::step], clean.states[::step], clean.inputs[::step],
-                        clean.state_names, clean.input_names)
+    coarse = Trajectory(
+        clean.t[::step], clean.states[::step], clean.inputs[::step], clean.state_names, clean.input_names
+    )
     return coarse.with_noise(case.noise, seed=seed)
 
 
@@ -143,6 +154,7 @@ def symsbl_identify(data, library):
 
 
 # -- candidate terms, in both packages --------------------------------------------------------
+
 
 def symsbl_library(system, case, general=False):
     variables = list(system.states) + list(system.inputs)
@@ -162,12 +174,14 @@ def pysindy_library(system, case):
     poly = ps.PolynomialLibrary(degree=3)
     if case.extras is _velocity_sign:
         assert len(system.states) + len(system.inputs) == 3  # (x1, x2, F)
-        return poly + ps.CustomLibrary([lambda a, b, c: np.sign(b)], [lambda a, b, c: f"sign({b})"],
-                                       include_bias=False)
+        return poly + ps.CustomLibrary([lambda a, b, c: np.sign(b)], [lambda a, b, c: f"sign({b})"], include_bias=False)
     if case.extras is _hysteresis:
         assert len(system.states) + len(system.inputs) == 4  # (x1, x2, x3, F)
-        return poly + ps.CustomLibrary([lambda a, b, c, d: np.abs(b) * c * np.abs(c)],
-                                       [lambda a, b, c, d: f"Abs({b})*{c}*Abs({c})"], include_bias=False)
+        return poly + ps.CustomLibrary(
+            [lambda a, b, c, d: np.abs(b) * c * np.abs(c)],
+            [lambda a, b, c, d: f"Abs({b})*{c}*Abs({c})"],
+            include_bias=False,
+        )
     return poly
 
 
@@ -179,6 +193,7 @@ def term_keys(names, system):
 
 
 # -- pysindy: features once, then the optimisers ------------------------------------------------
+
 
 class _Capture:
     """A stand-in optimizer that keeps the regression pysindy builds (features, targets)."""
@@ -206,8 +221,11 @@ def pysindy_features(data, system, case, how, window):
     capture = _Capture()
     model = ps.SINDy(optimizer=capture, feature_library=lib, differentiation_method=diff)
     model.fit(data.states, t=data.t, u=data.inputs, feature_names=list(data.state_names + data.input_names))
-    names = lib.function_library.get_feature_names(list(data.state_names + data.input_names)) if how == "weak" \
+    names = (
+        lib.function_library.get_feature_names(list(data.state_names + data.input_names))
+        if how == "weak"
         else model.get_feature_names()
+    )
     return capture.x, capture.y, term_keys(names, system)
 
 
@@ -220,7 +238,7 @@ def compressed(x, y):
     """Rows ``R`` of ``[x | y] = Q R``. Least squares, ridge and column norms, hence STLSQ's
     coefficients and every residual norm, are the same on them as on all the rows."""
     r = np.linalg.qr(np.column_stack([x, y]), mode="r")
-    return r[:, : x.shape[1]], r[:, x.shape[1]:]
+    return r[:, : x.shape[1]], r[:, x.shape[1] :]
 
 
 def sweep(xc, yc, grid):
@@ -253,12 +271,17 @@ def oracle_choice(coefs, keys, truth):
     """Per equation, the setting a user knowing the truth would pick: the exact support if
     some setting gives it, else every true term with the fewest spurious ones, else the
     fewest missing; then the smallest coefficient error."""
+
     def badness(c, true):
         found = {keys[j]: c[j] for j in np.flatnonzero(c)}
         return (len(set(true) - set(found)), len(set(found) - set(true)), coef_error(found, true))
 
-    return np.array([min(range(len(coefs)), key=lambda i, e=e, true=true: badness(coefs[i, e], true))
-                     for e, true in enumerate(truth)])
+    return np.array(
+        [
+            min(range(len(coefs)), key=lambda i, e=e, true=true: badness(coefs[i, e], true))
+            for e, true in enumerate(truth)
+        ]
+    )
 
 
 def rows(coefs, picks):
@@ -272,8 +295,9 @@ def ensemble(x, y, settings, picks):
     for i in np.unique(picks):
         np.random.seed(1)
         alpha, thr = settings[i]
-        opt = ps.EnsembleOptimizer(ps.STLSQ(threshold=thr, alpha=alpha, normalize_columns=True), bagging=True,
-                                   n_models=ENSEMBLE_MODELS)
+        opt = ps.EnsembleOptimizer(
+            ps.STLSQ(threshold=thr, alpha=alpha, normalize_columns=True), bagging=True, n_models=ENSEMBLE_MODELS
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             coef = opt.fit(x, y).coef_
@@ -300,6 +324,7 @@ def wrapped_rvm(x, y):
 
 
 # -- scoring ---------------------------------------------------------------------------------
+
 
 def coef_error(found, true):
     return max((abs(found[t] - c) / abs(c) if t in found else 1.0) for t, c in true.items())
@@ -347,11 +372,16 @@ class Score:
         div = int(np.sum(~np.isfinite(ho)))
         med = np.median(ho) if div < len(ho) else np.inf
         held = ("diverged" if not np.isfinite(med) else f"{med:.2f}") + (f" ({div} div)" if div else "")
-        return [f"{sum(self.exact)}/{len(self.exact)}", f"{100 * np.median(self.error):.2f}", held,
-                f"{np.median(self.seconds):.2f}"]
+        return [
+            f"{sum(self.exact)}/{len(self.exact)}",
+            f"{100 * np.median(self.error):.2f}",
+            held,
+            f"{np.median(self.seconds):.2f}",
+        ]
 
 
 # -- one case ---------------------------------------------------------------------------------
+
 
 def run_seed(case, seed, scores):
     system = case.system()
@@ -382,18 +412,28 @@ def run_seed(case, seed, scores):
         if how == "weak":
             t1 = time.perf_counter()
             coef = ensemble(x, y, settings, picks)
-            scores["pysindy weak + ensemble, AICc"].add(as_terms(coef, keys), truth, system, heldout,
-                                                       t_feat + time.perf_counter() - t1)
+            scores["pysindy weak + ensemble, AICc"].add(
+                as_terms(coef, keys), truth, system, heldout, t_feat + time.perf_counter() - t1
+            )
             t1 = time.perf_counter()
             coef = wrapped_rvm(x, y)
-            scores["pysindy weak + symsbl.RVM"].add(as_terms(coef, keys), truth, system, heldout,
-                                                   t_feat + time.perf_counter() - t1)
+            scores["pysindy weak + symsbl.RVM"].add(
+                as_terms(coef, keys), truth, system, heldout, t_feat + time.perf_counter() - t1
+            )
 
 
-METHODS = ["symsbl", "symsbl, Eq. 21 library", "pysindy weak + symsbl.RVM",
-           "pysindy FD + STLSQ, AICc", "pysindy SFD + STLSQ, AICc", "pysindy weak + STLSQ, AICc",
-           "pysindy weak + ensemble, AICc",
-           "pysindy FD + STLSQ, oracle", "pysindy SFD + STLSQ, oracle", "pysindy weak + STLSQ, oracle"]
+METHODS = [
+    "symsbl",
+    "symsbl, Eq. 21 library",
+    "pysindy weak + symsbl.RVM",
+    "pysindy FD + STLSQ, AICc",
+    "pysindy SFD + STLSQ, AICc",
+    "pysindy weak + STLSQ, AICc",
+    "pysindy weak + ensemble, AICc",
+    "pysindy FD + STLSQ, oracle",
+    "pysindy SFD + STLSQ, oracle",
+    "pysindy weak + STLSQ, oracle",
+]
 
 
 def main():
@@ -411,9 +451,11 @@ def main():
             run_seed(case, seed, scores)
         results[case.name] = scores
         settings = f"{case.fs:g} Hz, {100 * case.noise:g} % noise, {case.duration:g} s"
-        table(f"{case.name} ({settings}; {len(seeds)} seed(s))",
-              ["method", "exact support", "max coef. error (%)", "held-out NRMSE (%)", "time (s)"],
-              [[m] + scores[m].cells() for m in METHODS])
+        table(
+            f"{case.name} ({settings}; {len(seeds)} seed(s))",
+            ["method", "exact support", "max coef. error (%)", "held-out NRMSE (%)", "time (s)"],
+            [[m] + scores[m].cells() for m in METHODS],
+        )
     summary(results, cases)
     print(f"\n(total {time.perf_counter() - start:.0f} s)")
 

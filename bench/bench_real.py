@@ -47,8 +47,10 @@ CASES = {
     "process noise 2 %": (HARDENING, {"process": 0.02}),
     "1 % noise on F": (HARDENING, {"force_noise": 0.01}),
     "3 % noise on F": (HARDENING, {"force_noise": 0.03}),
-    "Coulomb 3 %, 0.7 % on x, v, 1 % on F, 12 s": (COULOMB, {"seconds": 12.0, "fs": 1200.0, "rms": 20.0,
-                                                          "band": (1.0, 15.0), "noise": 0.007, "force_noise": 0.01}),
+    "Coulomb 3 %, 0.7 % on x, v, 1 % on F, 12 s": (
+        COULOMB,
+        {"seconds": 12.0, "fs": 1200.0, "rms": 20.0, "band": (1.0, 15.0), "noise": 0.007, "force_noise": 0.01},
+    ),
 }
 
 
@@ -71,11 +73,23 @@ def simulated(seeds: int) -> None:
             estimate = model.metadata.get("estimator", {}).get("used", model.fit.value)
             used[estimate] = used.get(estimate, 0) + 1
         z = np.asarray(zs)
-        rows.append([name, f"{exact}/{seeds}", f"{np.std(z):.2f}", f"{np.max(np.abs(z)):.1f}", f"{doubted}/{seeds}",
-                     ", ".join(f"{k} {n}" for k, n in sorted(used.items())), f"{np.mean(seconds):.1f}"])
+        rows.append(
+            [
+                name,
+                f"{exact}/{seeds}",
+                f"{np.std(z):.2f}",
+                f"{np.max(np.abs(z)):.1f}",
+                f"{doubted}/{seeds}",
+                ", ".join(f"{k} {n}" for k, n in sorted(used.items())),
+                f"{np.mean(seconds):.1f}",
+            ]
+        )
         print(f"  {name}: exact {exact}/{seeds}, z spread {np.std(z):.2f}", flush=True)
-    _report.table("Simulated references (hardening oscillator, known truth)",
-                  ["case", "exact support", "z spread", "max |z|", "doubted", "estimate reported", "s per fit"], rows)
+    _report.table(
+        "Simulated references (hardening oscillator, known truth)",
+        ["case", "exact support", "z spread", "max |z|", "doubted", "estimate reported", "s per fit"],
+        rows,
+    )
 
 
 def _emps(name):
@@ -89,8 +103,13 @@ def _emps(name):
 def _parameters(model) -> dict:
     c = {t.name: t.coef for t in model.equation("v").terms}
     M = 1.0 / c["tau"]
-    return {"M": M, "Fv": -c.get("v", 0.0) * M, "Fc": -c.get("sign(v)", 0.0) * M, "OF": -c.get("1", 0.0) * M,
-            "terms": len(c)}
+    return {
+        "M": M,
+        "Fv": -c.get("v", 0.0) * M,
+        "Fc": -c.get("sign(v)", 0.0) * M,
+        "OF": -c.get("1", 0.0) * M,
+        "terms": len(c),
+    }
 
 
 def _force_residual(p: dict, test) -> float:
@@ -112,8 +131,11 @@ def emps() -> None:
     train, test = _emps("DATA_EMPS.mat"), _emps("DATA_EMPS_PULSES.mat")
     q, v, tau = symsbl.symbols("q v tau")
     friction = symsbl.custom([ca.SX(1), v, ca.sign(v), v * ca.fabs(v), v**3, tau], [q, v, tau])
-    rows = [["published (IDIM-LS)"] + [f"{PUBLISHED[k]:.4g}" for k in PUBLISHED] + ["4", "",
-            f"{100 * _force_residual(dict(PUBLISHED), test):.2f}", ""]]
+    rows = [
+        ["published (IDIM-LS)"]
+        + [f"{PUBLISHED[k]:.4g}" for k in PUBLISHED]
+        + ["4", "", f"{100 * _force_residual(dict(PUBLISHED), test):.2f}", ""]
+    ]
     runs = {
         "identify, friction library": lambda: symsbl.identify(train, friction, kinematics={"q": "v"}),
         "discrepancy from M, Fv, OF": lambda: symsbl.discrepancy(train, "q: v; v: tau, v, 1", heldout=test).final,
@@ -126,11 +148,16 @@ def emps() -> None:
         seconds = time.perf_counter() - start
         p = _parameters(model)
         worst = max(abs(p[k] / PUBLISHED[k] - 1) for k in ("M", "Fv", "Fc"))
-        rows.append([name] + [f"{p[k]:.4g}" for k in PUBLISHED] + [str(p["terms"]), f"{100 * worst:.2f}",
-                    f"{100 * _force_residual(p, test):.2f}", f"{seconds:.0f}"])
-    _report.table("EMPS (real, closed loop): the inverse model against the published one",
-                  ["model", "M", "Fv", "Fc", "OF", "terms", "worst of M, Fv, Fc off (%)",
-                   "test force residual (%)", "s"], rows)
+        rows.append(
+            [name]
+            + [f"{p[k]:.4g}" for k in PUBLISHED]
+            + [str(p["terms"]), f"{100 * worst:.2f}", f"{100 * _force_residual(p, test):.2f}", f"{seconds:.0f}"]
+        )
+    _report.table(
+        "EMPS (real, closed loop): the inverse model against the published one",
+        ["model", "M", "Fv", "Fc", "OF", "terms", "worst of M, Fv, Fc off (%)", "test force residual (%)", "s"],
+        rows,
+    )
 
 
 if __name__ == "__main__":

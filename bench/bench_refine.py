@@ -142,8 +142,13 @@ def cost(train, states: np.ndarray, w: np.ndarray) -> float:
 
 def start_cost(start, train, w) -> float:
     """E of the starting point: the equation-error model simulated from the first sample (RK4, cubic input)."""
-    sim = simulate(start.to_system(), train.t, inputs=Sampled(train.t, train.column("F"), kind="cubic"),
-                   x0=train.states[0], method="rk4")
+    sim = simulate(
+        start.to_system(),
+        train.t,
+        inputs=Sampled(train.t, train.column("F"), kind="cubic"),
+        x0=train.states[0],
+        method="rk4",
+    )
     return cost(train, sim.states, w)
 
 
@@ -219,17 +224,33 @@ def scipy_fit(start, train, w: np.ndarray, budget: float) -> dict:
         return rhs
 
     def residuals(v):
-        x0 = v[theta0.size:] * xscale
-        sol = solve_ivp(rhs_of(v[:theta0.size] * tscale), (t[0], t[-1]), x0, method="RK45", t_eval=t, rtol=1e-8,
-                        atol=1e-11 * xscale)
+        x0 = v[theta0.size :] * xscale
+        sol = solve_ivp(
+            rhs_of(v[: theta0.size] * tscale),
+            (t[0], t[-1]),
+            x0,
+            method="RK45",
+            t_eval=t,
+            rtol=1e-8,
+            atol=1e-11 * xscale,
+        )
         r = np.full(y.size, 1e10) if sol.status != 0 else ((y - sol.y.T) * sw).ravel()
         history.append((time.perf_counter() - clock0, 0.5 * float(r @ r)))
         return r
 
     v0 = np.concatenate([theta0 / tscale, train.states[0] / xscale])
     try:
-        res = least_squares(residuals, v0, jac="2-point", method="trf", x_scale="jac", diff_step=1e-6,
-                            ftol=1e-12, xtol=1e-12, gtol=1e-12)
+        res = least_squares(
+            residuals,
+            v0,
+            jac="2-point",
+            method="trf",
+            x_scale="jac",
+            diff_step=1e-6,
+            ftol=1e-12,
+            xtol=1e-12,
+            gtol=1e-12,
+        )
         status = f"stopped: {res.message}"
     except Budget:
         status = f"budget of {budget:.0f} s ran out"
@@ -250,6 +271,7 @@ def refinement_vs_n(durations):
     for seconds in durations:
         train = record(seconds)
         start = identify(train, LIB, refine=False)
+
         def fit(start=start, train=train):
             return refine(start, train, select=False, max_samples=train.n_samples)
 
@@ -262,22 +284,56 @@ def refinement_vs_n(durations):
         info = model.metadata["refine"]
         cases.append(dict(seconds=seconds, train=train, start=start, model=model, t=dt, cold=cold, w=w, e0=e0, e1=e1))
         growth = "" if len(cases) == 1 else f"{dt / cases[-2]['t']:.1f}x"
-        rows.append([f"{seconds:g} s", train.n_samples, f"{dt:.2f}" + ("" if cold is None else f" ({cold:.2f} cold)"),
-                     f"{1e6 * dt / train.n_samples:.2f}", info["passes"], len(info["stages"]), growth,
-                     f"{e0:.6g}", f"{e1:.6g}", f"{compare_to_truth(model, systems.duffing()).max_error():.1e}"])
+        rows.append(
+            [
+                f"{seconds:g} s",
+                train.n_samples,
+                f"{dt:.2f}" + ("" if cold is None else f" ({cold:.2f} cold)"),
+                f"{1e6 * dt / train.n_samples:.2f}",
+                info["passes"],
+                len(info["stages"]),
+                growth,
+                f"{e0:.6g}",
+                f"{e1:.6g}",
+                f"{compare_to_truth(model, systems.duffing()).max_error():.1e}",
+            ]
+        )
         reps = 2 if seconds <= 10 else 1
         default, dt_default = timed(lambda train=train: identify(train, LIB), repeats=reps)
         d_info = default.metadata.get("refine", {})
-        ident_rows.append([f"{seconds:g} s", train.n_samples, f"{dt_default:.2f}", d_info.get("samples", d_info),
-                           d_info.get("passes", "-"), ", ".join(default.equation("x2").names),
-                           f"{compare_to_truth(default, systems.duffing()).max_error():.1e}"])
-    table("Output-error refinement, structure fixed, every sample (refine(start, train, select=False, "
-          "max_samples=N); best of warm repeats)",
-          ["data", "N samples", "time (s)", "s per 10^6 samples", "passes", "stages", "time / previous (per decade)",
-           "E start", "E refined", "max rel. coef. error"], rows)
-    table("Default identify(train, library): equation error, then refinement with term selection on at most 2^18 "
-          "samples", ["data", "N samples", "time (s)", "samples refined on", "passes", "x2' support",
-                      "max rel. coef. error"], ident_rows)
+        ident_rows.append(
+            [
+                f"{seconds:g} s",
+                train.n_samples,
+                f"{dt_default:.2f}",
+                d_info.get("samples", d_info),
+                d_info.get("passes", "-"),
+                ", ".join(default.equation("x2").names),
+                f"{compare_to_truth(default, systems.duffing()).max_error():.1e}",
+            ]
+        )
+    table(
+        "Output-error refinement, structure fixed, every sample (refine(start, train, select=False, "
+        "max_samples=N); best of warm repeats)",
+        [
+            "data",
+            "N samples",
+            "time (s)",
+            "s per 10^6 samples",
+            "passes",
+            "stages",
+            "time / previous (per decade)",
+            "E start",
+            "E refined",
+            "max rel. coef. error",
+        ],
+        rows,
+    )
+    table(
+        "Default identify(train, library): equation error, then refinement with term selection on at most 2^18 samples",
+        ["data", "N samples", "time (s)", "samples refined on", "passes", "x2' support", "max rel. coef. error"],
+        ident_rows,
+    )
     return cases
 
 
@@ -298,13 +354,37 @@ def against_scipy(cases, budget: float):
             bound = "" if reach is not None else ">= "
             ratio += f" ({bound}{(reach or out['seconds']) / case['cold']:.0f}x against the cold call)"
         symsbl_t = f"{case['t']:.2f}" + ("" if case["cold"] is None else f" ({case['cold']:.2f} cold)")
-        rows.append([f"{case['seconds']:g} s", symsbl_t, f"{case['e1']:.8g}", f"{out['seconds']:.1f}",
-                     len(hist), first_sim, out["status"], f"{best:.8g}", reached, ratio])
-    table(f"Same problem, same start, same weights: symsbl.refine against scipy least_squares(trf, 2-point) + "
-          f"solve_ivp(RK45, rtol 1e-8) single shooting (budget {budget:.0f} s per case)",
-          ["data", "symsbl (s)", "symsbl E", "scipy wall time (s)", "scipy simulations", "scipy first simulation (s)",
-           "scipy status", "scipy best E", "scipy reaches symsbl's E + 0.5", "speed-up (scipy time to reach / symsbl)"],
-          rows)
+        rows.append(
+            [
+                f"{case['seconds']:g} s",
+                symsbl_t,
+                f"{case['e1']:.8g}",
+                f"{out['seconds']:.1f}",
+                len(hist),
+                first_sim,
+                out["status"],
+                f"{best:.8g}",
+                reached,
+                ratio,
+            ]
+        )
+    table(
+        f"Same problem, same start, same weights: symsbl.refine against scipy least_squares(trf, 2-point) + "
+        f"solve_ivp(RK45, rtol 1e-8) single shooting (budget {budget:.0f} s per case)",
+        [
+            "data",
+            "symsbl (s)",
+            "symsbl E",
+            "scipy wall time (s)",
+            "scipy simulations",
+            "scipy first simulation (s)",
+            "scipy status",
+            "scipy best E",
+            "scipy reaches symsbl's E + 0.5",
+            "speed-up (scipy time to reach / symsbl)",
+        ],
+        rows,
+    )
 
 
 def stream_child(path: str) -> None:
@@ -313,10 +393,20 @@ def stream_child(path: str) -> None:
         model, dt = timed(lambda: identify_stream(open_npz(path, **NAMES), LIB), repeats=1)
     truth = compare_to_truth(model, systems.duffing())
     info = model.metadata.get("refine", {})
-    print(json.dumps(dict(seconds=dt, maxrss_kib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-                          support={eq.lhs: eq.names for eq in model.equations}, max_error=truth.max_error(),
-                          exact=bool(truth.exact_support), samples=info.get("samples", info),
-                          passes=info.get("passes"), model=str(model))))
+    print(
+        json.dumps(
+            dict(
+                seconds=dt,
+                maxrss_kib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+                support={eq.lhs: eq.names for eq in model.equations},
+                max_error=truth.max_error(),
+                exact=bool(truth.exact_support),
+                samples=info.get("samples", info),
+                passes=info.get("passes"),
+                model=str(model),
+            )
+        )
+    )
 
 
 def long_record(n: int):
@@ -324,23 +414,52 @@ def long_record(n: int):
     with tempfile.TemporaryDirectory(prefix="symsbl_bench_refine_") as tmp:
         t0 = time.perf_counter()
         path = write_record(Path(tmp), n)
-        print(f"\nsimulated and wrote {n:.0e} samples ({n / FS:.0f} s at {FS} Hz, "
-              f"{path.stat().st_size / 2**20:.0f} MiB) in {time.perf_counter() - t0:.1f} s (not timed below)")
+        print(
+            f"\nsimulated and wrote {n:.0e} samples ({n / FS:.0f} s at {FS} Hz, "
+            f"{path.stat().st_size / 2**20:.0f} MiB) in {time.perf_counter() - t0:.1f} s (not timed below)"
+        )
         root = str(Path(__file__).resolve().parent.parent)  # symsbl importable in the subprocess as here
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])))
-        done = subprocess.run([sys.executable, __file__, "--stream-child", str(path)], check=False,
-                              capture_output=True, text=True, env=env)
+        done = subprocess.run(
+            [sys.executable, __file__, "--stream-child", str(path)],
+            check=False,
+            capture_output=True,
+            text=True,
+            env=env,
+        )
     if done.returncode != 0:
         print(f"\nthe identification subprocess failed (exit {done.returncode}):\n{done.stderr[-4000:]}")
         return
     out = json.loads(done.stdout.strip().splitlines()[-1])
     children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
     support = "; ".join(f"{k}' = {' + '.join(v)}" for k, v in out["support"].items())
-    table(f"Default identify_stream on a {n:.0e}-sample memory-mapped NPZ record (fresh subprocess)",
-          ["N samples", "time (s)", "peak RSS, subprocess (GiB)", "RUSAGE_CHILDREN (GiB)", "support",
-           "exact support", "max rel. coef. error", "refined on", "passes"],
-          [[n, f"{out['seconds']:.1f}", f"{out['maxrss_kib'] / 2**20:.2f}", f"{children:.2f}", support, out["exact"],
-            f"{out['max_error']:.1e}", out["samples"], out["passes"]]])
+    table(
+        f"Default identify_stream on a {n:.0e}-sample memory-mapped NPZ record (fresh subprocess)",
+        [
+            "N samples",
+            "time (s)",
+            "peak RSS, subprocess (GiB)",
+            "RUSAGE_CHILDREN (GiB)",
+            "support",
+            "exact support",
+            "max rel. coef. error",
+            "refined on",
+            "passes",
+        ],
+        [
+            [
+                n,
+                f"{out['seconds']:.1f}",
+                f"{out['maxrss_kib'] / 2**20:.2f}",
+                f"{children:.2f}",
+                support,
+                out["exact"],
+                f"{out['max_error']:.1e}",
+                out["samples"],
+                out["passes"],
+            ]
+        ],
+    )
     print(f"\nmodel:\n{out['model']}")
     if done.stderr.strip():
         print(f"\nsubprocess stderr (last lines):\n{done.stderr.strip()[-1500:]}")
@@ -373,9 +492,11 @@ def main():
     del cases
     if "3" not in skip:
         long_record(n_stream)
-    print(f"\nload average at the end: {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
-          f"total {time.perf_counter() - t0:.0f} s; "
-          f"this process's peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
+    print(
+        f"\nload average at the end: {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
+        f"total {time.perf_counter() - t0:.0f} s; "
+        f"this process's peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB"
+    )
     write_page("refine", __doc__)
 
 

@@ -90,8 +90,8 @@ def moments(D, y):
     """``D^T y`` and the squared column norms in one pass, block by block."""
     dty, d2, step = np.zeros(D.shape[1]), np.zeros(D.shape[1]), block_rows(D.shape[1])
     for start in range(0, len(D), step):
-        block = D[start:start + step]
-        dty += y[start:start + step] @ block
+        block = D[start : start + step]
+        dty += y[start : start + step] @ block
         d2 += np.einsum("ij,ij->j", block, block)
     return dty, d2
 
@@ -100,7 +100,7 @@ def cross(D, cols):
     """``D^T D[:, cols]`` in one pass, block by block."""
     out, part, step = np.zeros((D.shape[1], len(cols))), np.empty((D.shape[1], len(cols))), block_rows(D.shape[1])
     for start in range(0, len(D), step):
-        block = D[start:start + step]
+        block = D[start : start + step]
         np.matmul(block.T, block[:, cols], out=part)
         out += part
     return out
@@ -157,20 +157,23 @@ def speed(n=200_000, seed=0, repeats=5):
     def before():
         return RVM().fit_stats(GramStats(D.T @ D, (D.T @ y)[:, None], np.array([y @ y]), np.array([y.sum()]), n))
 
-    runs = timed_together({
-        "one pass over X: X^T y (the floor)": lambda: D.T @ y,
-        "Gram, general product (gemm) on a copy of X": lambda: D.T @ D_copy,
-        "Gram: numpy D.T @ D (numpy calls dsyrk)": lambda: D.T @ D,
-        "Gram: scipy.linalg.blas.dsyrk, symmetrised": lambda: scipy_syrk(D),
-        "GramStats.from_arrays (dsyrk + X^T y, one pass)": lambda: GramStats.from_arrays(D, y),
-        "solve (default ebic)": lambda: RVM().fit_stats(stats),
-        "solve, prune_nats=None": lambda: RVM(prune_nats=None).fit_stats(stats),
-        "fit(X, y) end to end as before (D.T @ D, D.T @ y)": before,
-        "fit(X, y) end to end": lambda: RVM().fit(D, y),
-        "columns on demand, batches of 16 (not used)": lambda: on_demand(D, y)[0],
-        "columns on demand, entering set known (its bound)": lambda: on_demand(D, y, first=entering)[0],
-        "sklearn ARDRegression(fit_intercept=False)": lambda: ARDRegression(fit_intercept=False).fit(D, y),
-    }, repeats)
+    runs = timed_together(
+        {
+            "one pass over X: X^T y (the floor)": lambda: D.T @ y,
+            "Gram, general product (gemm) on a copy of X": lambda: D.T @ D_copy,
+            "Gram: numpy D.T @ D (numpy calls dsyrk)": lambda: D.T @ D,
+            "Gram: scipy.linalg.blas.dsyrk, symmetrised": lambda: scipy_syrk(D),
+            "GramStats.from_arrays (dsyrk + X^T y, one pass)": lambda: GramStats.from_arrays(D, y),
+            "solve (default ebic)": lambda: RVM().fit_stats(stats),
+            "solve, prune_nats=None": lambda: RVM(prune_nats=None).fit_stats(stats),
+            "fit(X, y) end to end as before (D.T @ D, D.T @ y)": before,
+            "fit(X, y) end to end": lambda: RVM().fit(D, y),
+            "columns on demand, batches of 16 (not used)": lambda: on_demand(D, y)[0],
+            "columns on demand, entering set known (its bound)": lambda: on_demand(D, y, first=entering)[0],
+            "sklearn ARDRegression(fit_intercept=False)": lambda: ARDRegression(fit_intercept=False).fit(D, y),
+        },
+        repeats,
+    )
     floor = runs["one pass over X: X^T y (the floor)"][1]
     true = np.flatnonzero(w)
     rows = []
@@ -178,22 +181,35 @@ def speed(n=200_000, seed=0, repeats=5):
         cells = ["", "", "", ""]
         if hasattr(out, "coef_"):
             support = np.flatnonzero(out.coef_)
-            cells = [len(support), len(set(support) - set(true)), len(set(true) - set(support)),
-                     f"{np.max(np.abs(out.coef_ - w)):.2e}"]
+            cells = [
+                len(support),
+                len(set(support) - set(true)),
+                len(set(true) - set(support)),
+                f"{np.max(np.abs(out.coef_ - w)):.2e}",
+            ]
         rows.append([name, f"{seconds * 1e3:.1f}", f"{seconds / floor:.1f}"] + cells)
     print(f"N = {n}, M = {D.shape[1]}, 5 true terms, 1 % noise, seed {seed}; best of {repeats}, interleaved")
-    table("symsbl.RVM against ARDRegression",
-          ["", "time (ms)", "in passes over X", "terms", "FP", "FN", "max|w-w*|"], rows)
+    table(
+        "symsbl.RVM against ARDRegression",
+        ["", "time (ms)", "in passes over X", "terms", "FP", "FN", "max|w-w*|"],
+        rows,
+    )
     t_fit, t_ard = runs["fit(X, y) end to end"][1], runs["sklearn ARDRegression(fit_intercept=False)"][1]
     t_solve = runs["solve (default ebic)"][1]
     _, source = on_demand(D, y)
-    print(f"\nend to end: {t_ard / t_fit:.1f}x faster than ARDRegression "
-          f"(as before: {t_ard / runs['fit(X, y) end to end as before (D.T @ D, D.T @ y)'][1]:.1f}x; "
-          f"solve alone: {t_ard / t_solve:.0f}x)")
-    print(f"one-pass floor {floor * 1e3:.1f} ms: fit(X, y) takes {t_fit / floor:.1f} passes' worth "
-          f"(the floor is {100 * floor / t_fit:.0f} % of it); ARD at 10x would need {t_ard / 10 * 1e3:.0f} ms")
-    print(f"columns that enter the model at some point: {len(entering)} of {D.shape[1]} "
-          f"({entering}); on demand in batches of 16: {source.passes} passes + 1 for X^T y")
+    print(
+        f"\nend to end: {t_ard / t_fit:.1f}x faster than ARDRegression "
+        f"(as before: {t_ard / runs['fit(X, y) end to end as before (D.T @ D, D.T @ y)'][1]:.1f}x; "
+        f"solve alone: {t_ard / t_solve:.0f}x)"
+    )
+    print(
+        f"one-pass floor {floor * 1e3:.1f} ms: fit(X, y) takes {t_fit / floor:.1f} passes' worth "
+        f"(the floor is {100 * floor / t_fit:.0f} % of it); ARD at 10x would need {t_ard / 10 * 1e3:.0f} ms"
+    )
+    print(
+        f"columns that enter the model at some point: {len(entering)} of {D.shape[1]} "
+        f"({entering}); on demand in batches of 16: {source.passes} passes + 1 for X^T y"
+    )
 
 
 def recovery(seeds=range(20), sizes=(20_000, 200_000)):
@@ -255,5 +271,16 @@ if __name__ == "__main__":
     else:
         with one_blas_thread():
             speed()
-    write_page("rvm-" + ("recovery" if args.recovery else "detection" if args.detection else
-                         "speed-threads" if args.threads else "speed"), __doc__)
+    write_page(
+        "rvm-"
+        + (
+            "recovery"
+            if args.recovery
+            else "detection"
+            if args.detection
+            else "speed-threads"
+            if args.threads
+            else "speed"
+        ),
+        __doc__,
+    )

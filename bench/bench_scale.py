@@ -92,13 +92,13 @@ def x2_support(model):
     return ", ".join(t.name for t in model.equation("x2").terms)
 
 
-
 def scaling(path: Path, sizes):
     from symsbl import fit_stats
 
     rows = []
     identify_stream(open_npz(path, **NAMES, stop=20000), LIB)  # compile the dictionary once
     for n in sizes:
+
         def run(n_jobs, n=n):
             problem = stream_stats(open_npz(path, **NAMES, stop=n), LIB, n_jobs=n_jobs)
             t0 = time.perf_counter()
@@ -111,20 +111,45 @@ def scaling(path: Path, sizes):
             traj = _trajectory(path, n)
             _, dtm, peakm = measured(lambda traj=traj: identify(traj, LIB))
             ref = f"{dtm:.2f} s / {peakm:.0f} MiB"
-        rows.append([f"{n:.0e}", f"{dt:.2f}", f"{dt - t_fit:.2f}", f"{1e9 * (dt - t_fit) / n:.0f}", f"{t_fit:.2f}",
-                     f"{peak:.0f}", f"{dt2 - t_fit2:.2f}", f"{peak2:.0f}", ref, x2_support(model)])
-    table("Streaming identification from a memory-mapped NPZ (Eq. 21, degree 3, 34 terms; weak form)",
-          ["N", "total (s)", "statistics (s)", "statistics ns/sample", "fit (s)", "peak (MiB)",
-           "statistics, n_jobs=2 (s)", "peak, n_jobs=2 (MiB)", "in-memory identify(): time / peak",
-           "x2' support found"], rows)
+        rows.append(
+            [
+                f"{n:.0e}",
+                f"{dt:.2f}",
+                f"{dt - t_fit:.2f}",
+                f"{1e9 * (dt - t_fit) / n:.0f}",
+                f"{t_fit:.2f}",
+                f"{peak:.0f}",
+                f"{dt2 - t_fit2:.2f}",
+                f"{peak2:.0f}",
+                ref,
+                x2_support(model),
+            ]
+        )
+    table(
+        "Streaming identification from a memory-mapped NPZ (Eq. 21, degree 3, 34 terms; weak form)",
+        [
+            "N",
+            "total (s)",
+            "statistics (s)",
+            "statistics ns/sample",
+            "fit (s)",
+            "peak (MiB)",
+            "statistics, n_jobs=2 (s)",
+            "peak, n_jobs=2 (MiB)",
+            "in-memory identify(): time / peak",
+            "x2' support found",
+        ],
+        rows,
+    )
 
 
 def _trajectory(path: Path, n: int):
     from symsbl import Trajectory
 
     with np.load(path) as z:
-        return Trajectory(z["t"][:n], np.column_stack([z["x1"][:n], z["x2"][:n]]), z["F"][:n][:, None], ("x1", "x2"),
-                          ("F",))
+        return Trajectory(
+            z["t"][:n], np.column_stack([z["x1"][:n], z["x2"][:n]]), z["F"][:n][:, None], ("x1", "x2"), ("F",)
+        )
 
 
 def rvm_vs_ard(path: Path, sizes):
@@ -146,12 +171,23 @@ def rvm_vs_ard(path: Path, sizes):
             ard, t_ard = timed(lambda Dn=Dn, y=y: ARDRegression(fit_intercept=False).fit(Dn, y))
         s_rvm = sorted(LIB.names[i] for i in rvm.active_)
         s_ard = sorted(LIB.names[i] for i in np.flatnonzero(np.abs(ard.coef_) > 0))
-        rows.append([f"{n:.0e}", f"{len(D)} x {D.shape[1]}", f"{1e3 * t_rvm:.1f}", f"{1e3 * t_ard:.1f}",
-                     f"{t_ard / t_rvm:.1f}", ", ".join(s_rvm), f"{len(s_ard)} terms"])
-    table("RVM (symsbl, plain fit without the support search) against sklearn ARDRegression on the same weak-form "
-          "rows of x2'",
-          ["N samples", "rows x terms", "RVM (ms)", "ARD (ms)", "ARD / RVM", "RVM support", "ARD support"], rows)
-
+        rows.append(
+            [
+                f"{n:.0e}",
+                f"{len(D)} x {D.shape[1]}",
+                f"{1e3 * t_rvm:.1f}",
+                f"{1e3 * t_ard:.1f}",
+                f"{t_ard / t_rvm:.1f}",
+                ", ".join(s_rvm),
+                f"{len(s_ard)} terms",
+            ]
+        )
+    table(
+        "RVM (symsbl, plain fit without the support search) against sklearn ARDRegression on the same weak-form "
+        "rows of x2'",
+        ["N samples", "rows x terms", "RVM (ms)", "ARD (ms)", "ARD / RVM", "RVM support", "ARD support"],
+        rows,
+    )
 
 
 def _load_block(directory: Path, a: int, b: int) -> np.ndarray:
@@ -171,8 +207,10 @@ def dask_vs_single(directory: Path, path: Path, n: int):
     cuts = list(range(0, n, 2**20)) + [n]
     parts = [dask.delayed(_load_block)(directory, a, b) for a, b in zip(cuts[:-1], cuts[1:])]
     record = from_delayed(parts, n_columns=4, lengths=np.diff(cuts))
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster):
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        Client(cluster),
+    ):
         identify_dask(record[:50000], LIB, **NAMES, refine=False)  # warm the workers
         # the map-reduce of the statistics against the single pass: both by equation error
         model, t_dask = timed(lambda: identify_dask(record, LIB, **NAMES, refine=False), repeats=1)
@@ -182,10 +220,12 @@ def dask_vs_single(directory: Path, path: Path, n: int):
         for a, b in zip(model.equations, single.equations)
     )
     same = all(a.names == b.names for a, b in zip(model.equations, single.equations))
-    table(f"Dask (LocalCluster, 2 workers x 1 thread, in-process) against the single process, N = {n:.0e}, "
-          f"window {problem.derivative.window} samples",
-          ["single process (s)", "Dask (s)", "Dask / single", "same supports", "max relative coefficient difference"],
-          [[f"{t_single:.2f}", f"{t_dask:.2f}", f"{t_dask / t_single:.2f}", same, f"{worst:.1e}"]])
+    table(
+        f"Dask (LocalCluster, 2 workers x 1 thread, in-process) against the single process, N = {n:.0e}, "
+        f"window {problem.derivative.window} samples",
+        ["single process (s)", "Dask (s)", "Dask / single", "same supports", "max relative coefficient difference"],
+        [[f"{t_single:.2f}", f"{t_dask:.2f}", f"{t_dask / t_single:.2f}", same, f"{worst:.1e}"]],
+    )
 
 
 def batch(path: Path):
@@ -195,14 +235,23 @@ def batch(path: Path):
             a = k * 2**17
             from symsbl import Trajectory
 
-            records.append(Trajectory(z["t"][a:a + 2**17],
-                                      np.column_stack([z["x1"][a:a + 2**17], z["x2"][a:a + 2**17]]),
-                                      z["F"][a:a + 2**17][:, None], ("x1", "x2"), ("F",)))
+            records.append(
+                Trajectory(
+                    z["t"][a : a + 2**17],
+                    np.column_stack([z["x1"][a : a + 2**17], z["x2"][a : a + 2**17]]),
+                    z["F"][a : a + 2**17][:, None],
+                    ("x1", "x2"),
+                    ("F",),
+                )
+            )
     loop, t_loop = timed(lambda: [identify(r, LIB) for r in records], repeats=2)
     many, t_many = timed(lambda: identify_many(records, LIB, n_jobs=2), repeats=2)
     assert all(str(a) == str(b) for a, b in zip(loop, many))
-    table("A batch of 8 records of 4 s each", ["loop of identify (s)", "identify_many, 2 threads (s)", "loop / batch"],
-          [[f"{t_loop:.2f}", f"{t_many:.2f}", f"{t_loop / t_many:.2f}"]])
+    table(
+        "A batch of 8 records of 4 s each",
+        ["loop of identify (s)", "identify_many, 2 threads (s)", "loop / batch"],
+        [[f"{t_loop:.2f}", f"{t_many:.2f}", f"{t_loop / t_many:.2f}"]],
+    )
 
 
 def main():
@@ -216,8 +265,10 @@ def main():
         directory = Path(tmp)
         t0 = time.perf_counter()
         path = write_record(directory, n_max)
-        print(f"simulated and wrote {n_max:.0e} samples ({n_max / FS:.0f} s of Duffing at {FS} Hz) in "
-              f"{time.perf_counter() - t0:.1f} s")
+        print(
+            f"simulated and wrote {n_max:.0e} samples ({n_max / FS:.0f} s of Duffing at {FS} Hz) in "
+            f"{time.perf_counter() - t0:.1f} s"
+        )
         scaling(path, sizes)
         rvm_vs_ard(path, [n for n in sizes if n <= 10**6])
         batch(path)

@@ -64,9 +64,16 @@ def scipy_run(rhs, t, method, rtol, atol):
 
 def print_table(title, rows, base_label):
     base = dict((r[0], r[1]) for r in rows)[base_label]
-    _report.table(title, ["method", "time", "ratio", "rel. error (x1)"],
-                  [[label, "-", "-", sec] if isinstance(sec, str) else
-                   [label, f"{sec * 1e3:.1f} ms", f"{sec / base:.2f}x", f"{err:.1e}"] for label, sec, err in rows])
+    _report.table(
+        title,
+        ["method", "time", "ratio", "rel. error (x1)"],
+        [
+            [label, "-", "-", sec]
+            if isinstance(sec, str)
+            else [label, f"{sec * 1e3:.1f} ms", f"{sec / base:.2f}x", f"{err:.1e}"]
+            for label, sec, err in rows
+        ],
+    )
     print(f"ratio = time / time of '{base_label}'")
 
 
@@ -83,23 +90,34 @@ def bench_duffing(duration, repeats):
         rows.append((label, sec, rel_err(x1, ref)))
 
     for rtol, atol in ((1e-8, 1e-10), (1e-10, 1e-12)):
-        add(f"symsbl cvodes BDF, rtol {rtol:g}",
-            lambda rtol=rtol, atol=atol: simulate(s, t, inputs=sig, method="cvodes", rtol=rtol, atol=atol).states[:, 0])
+        add(
+            f"symsbl cvodes BDF, rtol {rtol:g}",
+            lambda rtol=rtol, atol=atol: simulate(s, t, inputs=sig, method="cvodes", rtol=rtol, atol=atol).states[:, 0],
+        )
     simulate(s, t, inputs=sig, method="rk4", jit=True)  # compile outside the timing (reported below)
     simulate(s, t, inputs=sig, method="rk4", substeps=2, jit=True)
     add("symsbl RK4 mapaccum+JIT, 1 substep", lambda: simulate(s, t, inputs=sig, method="rk4", jit=True).states[:, 0])
-    add("symsbl RK4 mapaccum+JIT, 2 substeps",
-        lambda: simulate(s, t, inputs=sig, method="rk4", substeps=2, jit=True).states[:, 0])
-    add("symsbl RK4 mapaccum, SX virtual machine", lambda: simulate(s, t, inputs=sig, method="rk4",
-                                                                     jit=False).states[:, 0])
+    add(
+        "symsbl RK4 mapaccum+JIT, 2 substeps",
+        lambda: simulate(s, t, inputs=sig, method="rk4", substeps=2, jit=True).states[:, 0],
+    )
+    add(
+        "symsbl RK4 mapaccum, SX virtual machine",
+        lambda: simulate(s, t, inputs=sig, method="rk4", jit=False).states[:, 0],
+    )
     for rtol, atol in ((1e-8, 1e-10), (1e-10, 1e-12)):
         for method in ("RK45", "DOP853", "LSODA"):
-            add(f"scipy {method}, rtol {rtol:g}",
+            add(
+                f"scipy {method}, rtol {rtol:g}",
                 lambda method=method, rtol=rtol, atol=atol: scipy_run(duffing_rhs, t, method, rtol, atol),
-                n=repeats if duration <= 1 else 1)
-    print_table(f"Duffing, {duration:g} s at {FS} Hz ({t.size} samples); reference DOP853 rtol 1e-12 "
-                f"(RK4 with 4 substeps agrees with it to {rel_err(rk4_check, ref):.1e})",
-                rows, "symsbl cvodes BDF, rtol 1e-10")
+                n=repeats if duration <= 1 else 1,
+            )
+    print_table(
+        f"Duffing, {duration:g} s at {FS} Hz ({t.size} samples); reference DOP853 rtol 1e-12 "
+        f"(RK4 with 4 substeps agrees with it to {rel_err(rk4_check, ref):.1e})",
+        rows,
+        "symsbl cvodes BDF, rtol 1e-10",
+    )
     return rows
 
 
@@ -111,8 +129,9 @@ def bench_coulomb():
     rows = []
     for sub in (1, 2, 8):
         simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True)
-        x1, sec = timed(lambda sub=sub: simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True).states[:, 0],
-                        3)
+        x1, sec = timed(
+            lambda sub=sub: simulate(s, t, inputs=sig, method="rk4", substeps=sub, jit=True).states[:, 0], 3
+        )
         rows.append((f"symsbl RK4 mapaccum+JIT, {sub} substep(s)", sec, rel_err(x1, ref)))
     x1, sec = timed(lambda: simulate(s, t, inputs=sig, method="rk4", jit=False).states[:, 0], 3)
     rows.append(("symsbl RK4 mapaccum, SX virtual machine", sec, rel_err(x1, ref)))
@@ -135,18 +154,25 @@ def bench_coulomb():
             print(f"  scipy {method}: did not finish in {DEADLINE:g} s (reached t = {progress[0]:.2e} s of 1 s)")
         except Exception as err:  # noqa: BLE001 - reported, not handled
             rows.append((f"scipy {method}, rtol 1e-8", "aborts", None))
-            print(f"  scipy {method}: aborted after {time.perf_counter() - t0:.2f} s at t = {progress[0]:.2e} s: "
-                  f"{str(err)[:90]}")
-    print_table(f"Coulomb (kc = 1), 1 s at {FS} Hz; reference RK4 with 64 substeps", rows,
-                "symsbl RK4 mapaccum+JIT, 1 substep(s)")
+            print(
+                f"  scipy {method}: aborted after {time.perf_counter() - t0:.2f} s at t = {progress[0]:.2e} s: "
+                f"{str(err)[:90]}"
+            )
+    print_table(
+        f"Coulomb (kc = 1), 1 s at {FS} Hz; reference RK4 with 64 substeps",
+        rows,
+        "symsbl RK4 mapaccum+JIT, 1 substep(s)",
+    )
 
 
 def main():
     s, t = systems.duffing(), time_grid(1.0, FS)
     t0 = time.perf_counter()
     simulate(s, t, inputs=Sine(), method="rk4", substeps=3, jit=True)
-    print(f"JIT compile + first run of an RK4 chunk (4096 samples): {time.perf_counter() - t0:.2f} s (once per "
-          "system, substeps and chunk; cached afterwards)")
+    print(
+        f"JIT compile + first run of an RK4 chunk (4096 samples): {time.perf_counter() - t0:.2f} s (once per "
+        "system, substeps and chunk; cached afterwards)"
+    )
     _, sec = timed(lambda: simulate(s, t, inputs=Sine()), 3)
     print(f"simulate(duffing(), 1 s at 32768 Hz, Sine()) with the default method: {sec * 1e3:.1f} ms")
     bench_duffing(1.0, 3)

@@ -44,9 +44,11 @@ HEADER = ["system", "forcing", "overlap", "exact", "err/CRB", "z std", "rows"]
 def _system(kind):
     x1, x2, F = symbols("x1 x2 F")
     m, k = 2.0, 8e3
-    force = {"linear": 6.0 * x2 + k * x1,
-             "drag": 2.0 * x2 + 5.0 * x2 * abs(x2) + k * x1,
-             "cubic": 6.0 * x2 + k * x1 + 3e7 * x1**3}[kind]
+    force = {
+        "linear": 6.0 * x2 + k * x1,
+        "drag": 2.0 * x2 + 5.0 * x2 * abs(x2) + k * x1,
+        "cubic": 6.0 * x2 + k * x1 + 3e7 * x1**3,
+    }[kind]
     return OdeSystem((x1, x2), (F,), (x2, (F - force) / m), name=kind)
 
 
@@ -67,6 +69,7 @@ def _terms(model, system):
 
 def _true(system):
     import sympy as sp
+
     rhs = sp.expand(system.to_sympy()[1].rhs)
     return {str(term): float(coef) for coef, term in (p.as_coeff_Mul() for p in sp.Add.make_args(rhs))}
 
@@ -100,9 +103,18 @@ def run(seeds, overlaps):
                 rows.append([kind, forcing, q, f"{len(good)}/{seeds}", eff, zstd, n_rows[q]])
             good = [f for f in oe if f]
             rel = [(f[name][0] - truth[name]) / crb[name] for f in good for name in truth]
-            rows.append([kind, forcing, "output error", f"{len(good)}/{seeds}",
-                         f"{np.sqrt(np.mean(np.square(rel))):.3g}", "-", "-"])
-            table(f"{kind}, {forcing}", HEADER, rows[-len(overlaps) - 1:])
+            rows.append(
+                [
+                    kind,
+                    forcing,
+                    "output error",
+                    f"{len(good)}/{seeds}",
+                    f"{np.sqrt(np.mean(np.square(rel))):.3g}",
+                    "-",
+                    "-",
+                ]
+            )
+            table(f"{kind}, {forcing}", HEADER, rows[-len(overlaps) - 1 :])
     return rows
 
 
@@ -123,8 +135,15 @@ def _paper_cases(seeds):
     system = OdeSystem((x1, x2), (F,), (x2, (F - 3.0 * x2 - 2e3 * x1 - 2e7 * x1**3) / 0.5), name="duffing")
     for seed in range(seeds):
         signal = Multisine(10.0, 1.0, 30.0, seed=5 + seed, period=5.0)
-        yield ("Duffing at 400 Hz", system, "multisine", seed, simulate(system, time_grid(10.0, 400), inputs=signal),
-               paper([x1, x2], [F], degree=3), 0.01)
+        yield (
+            "Duffing at 400 Hz",
+            system,
+            "multisine",
+            seed,
+            simulate(system, time_grid(10.0, 400), inputs=signal),
+            paper([x1, x2], [F], degree=3),
+            0.01,
+        )
 
 
 def run_paper(seeds, overlaps):
@@ -138,11 +157,22 @@ def run_paper(seeds, overlaps):
             if truth.exact_support:
                 largest.append(truth.max_error())
             spurious.update(t for terms in truth.spurious.values() for t in terms)
-    rows = [[name, forcing, q, f"{sum(exact)}/{len(exact)}", f"{np.median(largest):.2g}" if largest else "-",
-             ", ".join(f"{t} ({n})" for t, n in spurious.most_common(3)) or "-"]
-            for (name, forcing, q), (exact, largest, spurious) in groups.items()]
-    table(f"Equation error on the paper's systems, windows apart (1) or overlapping (q), {seeds} seeds",
-          PAPER_HEADER, rows)
+    rows = [
+        [
+            name,
+            forcing,
+            q,
+            f"{sum(exact)}/{len(exact)}",
+            f"{np.median(largest):.2g}" if largest else "-",
+            ", ".join(f"{t} ({n})" for t, n in spurious.most_common(3)) or "-",
+        ]
+        for (name, forcing, q), (exact, largest, spurious) in groups.items()
+    ]
+    table(
+        f"Equation error on the paper's systems, windows apart (1) or overlapping (q), {seeds} seeds",
+        PAPER_HEADER,
+        rows,
+    )
     return rows
 
 

@@ -25,8 +25,13 @@ import numpy as np
 import symsbl
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "BoucWen"
-FILES = ["BoucWen_train_multisine_5periods.npz", "uval_multisine.mat", "yval_multisine.mat",
-         "uval_sinesweep.mat", "yval_sinesweep.mat"]
+FILES = [
+    "BoucWen_train_multisine_5periods.npz",
+    "uval_multisine.mat",
+    "yval_multisine.mat",
+    "uval_sinesweep.mat",
+    "yval_sinesweep.mat",
+]
 if not all((DATA / f).is_file() for f in FILES):
     print(f"skipped: the Bouc-Wen benchmark data are not in {DATA} (need {', '.join(FILES)})")
     sys.exit(77)  # reported as skipped by the test that runs the examples
@@ -55,12 +60,17 @@ model = symsbl.identify(train, library, states=["y", "v", "z"], kinematics={"y":
 info = model.metadata["latent"]
 print(f"\nidentified in {time.perf_counter() - start:.1f} s ({len(library)} candidate terms):")
 print(model)
-print(f"verdict: {info['verdict']}; log evidence by branch: "
-      + ", ".join(f"{k} {b['log_evidence']:.6g}" for k, b in info["branches"].items()))
-print(f"stages: linear skeleton m, c, k = {info['linear_skeleton']['m']:.4g}, {info['linear_skeleton']['c']:.4g}, "
-      f"{info['linear_skeleton']['k']:.5g}; split = {info['split_skeleton']['m']:.4g}, "
-      f"{info['split_skeleton']['c']:.4g}, {info['split_skeleton']['k']:.5g}; screened law: "
-      + ", ".join(info["screened_law"]) + f"; seconds {info['seconds']}")
+print(
+    f"verdict: {info['verdict']}; log evidence by branch: "
+    + ", ".join(f"{k} {b['log_evidence']:.6g}" for k, b in info["branches"].items())
+)
+print(
+    f"stages: linear skeleton m, c, k = {info['linear_skeleton']['m']:.4g}, {info['linear_skeleton']['c']:.4g}, "
+    f"{info['linear_skeleton']['k']:.5g}; split = {info['split_skeleton']['m']:.4g}, "
+    f"{info['split_skeleton']['c']:.4g}, {info['split_skeleton']['k']:.5g}; screened law: "
+    + ", ".join(info["screened_law"])
+    + f"; seconds {info['seconds']}"
+)
 
 
 # -- the published parameters: m = 1/b, and z in newtons is s z with s = -(coefficient of z in v') m ----------
@@ -69,8 +79,9 @@ def published_form(p):
     values = dict(zip(names, p))
     m = 1.0 / values["v:u"]
     s = -values["v:z"] * m
-    return np.array([m, -values["v:v"] * m, -values["v:y"] * m, values["z:v"] * s,
-                     -values["z:z*Abs(v)"], -values["z:v*Abs(z)"]])
+    return np.array(
+        [m, -values["v:v"] * m, -values["v:y"] * m, values["z:v"] * s, -values["z:z*Abs(v)"], -values["z:v*Abs(z)"]]
+    )
 
 
 names = [f"{eq.lhs}:{t.name}" for eq in model.equations for t in eq.terms]
@@ -78,8 +89,9 @@ _, mean = model.parameters()
 cov = model.covariance()
 estimate = published_form(mean)
 steps = np.maximum(np.abs(mean), 1e-12) * 1e-6
-J = np.column_stack([(published_form(mean + np.eye(mean.size)[i] * steps[i]) - estimate) / steps[i]
-                     for i in range(mean.size)])
+J = np.column_stack(
+    [(published_form(mean + np.eye(mean.size)[i] * steps[i]) - estimate) / steps[i] for i in range(mean.size)]
+)
 std = np.sqrt(np.diag(J @ cov @ J.T))
 print("\nparameter       identified (posterior std)      published   error")
 for (key, truth), value, sd in zip(PUBLISHED.items(), estimate, std):
@@ -88,39 +100,48 @@ for (key, truth), value, sd in zip(PUBLISHED.items(), estimate, std):
 # -- scoring on the official test signals ---------------------------------------------------------------------
 system = model.to_system()
 published = symsbl.OdeSystem(
-    states=(y, v, z), inputs=(u,),
+    states=(y, v, z),
+    inputs=(u,),
     rhs=(v, (u - 10 * v - 5e4 * y - z) / 2, 5e4 * v - 1e3 * (0.8 * ca.fabs(v) * z - 1.1 * v * ca.fabs(z))),
-    name="Bouc-Wen (published)")
+    name="Bouc-Wen (published)",
+)
 
 
 def multisine_rms(sys_):
     """Steady state: four periods of the periodic test input (band-limited interpolation), the last scored."""
     t = np.arange(4 * u_ms.size) / FS
     drive = symsbl.Sampled(t, np.tile(u_ms, 4), kind="periodic")
-    out = symsbl.simulate(sys_, t, inputs=drive, method="rk4", substeps=SUBSTEPS).column("y")[-u_ms.size:]
+    out = symsbl.simulate(sys_, t, inputs=drive, method="rk4", substeps=SUBSTEPS).column("y")[-u_ms.size :]
     return float(np.sqrt(np.mean((out - y_ms) ** 2)))
 
 
 def sweep_rms(sys_):
     """From rest, the input a cubic spline through its samples."""
     t = np.arange(u_sw.size) / FS
-    out = symsbl.simulate(sys_, t, inputs=symsbl.Sampled(t, u_sw, kind="cubic"), method="rk4",
-                          substeps=SUBSTEPS).column("y")
+    out = symsbl.simulate(
+        sys_, t, inputs=symsbl.Sampled(t, u_sw, kind="cubic"), method="rk4", substeps=SUBSTEPS
+    ).column("y")
     return float(np.sqrt(np.mean((out - y_sw) ** 2)))
 
 
 scores = {name: (multisine_rms(s), sweep_rms(s)) for name, s in (("identified", system), ("published", published))}
-print(f"\ntest RMS (m), RK4 at {FS * SUBSTEPS / 1000:g} kHz     multisine (std {y_ms.std():.3g})   sine sweep "
-      f"(std {y_sw.std():.3g})")
+print(
+    f"\ntest RMS (m), RK4 at {FS * SUBSTEPS / 1000:g} kHz     multisine (std {y_ms.std():.3g})   sine sweep "
+    f"(std {y_sw.std():.3g})"
+)
 for name, (ms, sw) in scores.items():
-    print(f"  {name + ' equations':28s}  {ms:10.3g} ({100 * ms / y_ms.std():.3f} %)    {sw:10.3g} "
-          f"({100 * sw / y_sw.std():.3f} %)")
+    print(
+        f"  {name + ' equations':28s}  {ms:10.3g} ({100 * ms / y_ms.std():.3f} %)    {sw:10.3g} "
+        f"({100 * sw / y_sw.std():.3f} %)"
+    )
 for name, rms in LITERATURE.items():
     print(f"  {name:28s}  {rms:10.3g} ({100 * rms / y_ms.std():.3f} %)    (literature)")
 ms_rms = scores["identified"][0]
-print(f"\nthe identified model is {min(LITERATURE.values()) / ms_rms:.0f} times better than the best published "
-      f"black-box model on the multisine, with {len(mean) - 2} fitted coefficients "
-      f"({time.perf_counter() - start:.1f} s)")
+print(
+    f"\nthe identified model is {min(LITERATURE.values()) / ms_rms:.0f} times better than the best published "
+    f"black-box model on the multisine, with {len(mean) - 2} fitted coefficients "
+    f"({time.perf_counter() - start:.1f} s)"
+)
 
 assert info["verdict"] == "hidden"
 assert sorted(model.equation("z").names) == sorted(["v", "z*Abs(v)", "v*Abs(z)"])  # the published law, nu = 1

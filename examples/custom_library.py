@@ -68,5 +68,7 @@ _, check_builtin, evidence_builtin, warned_builtin = results["built-in terms onl
 assert any("not white" in w for w in warned_builtin), warned_builtin
 assert evidence > evidence_builtin + 10, (evidence, evidence_builtin)
 assert max(check.nrmse.values()) < max(check_builtin.nrmse.values())
-print(f"the user's {friction} term: coefficient {eq.coef(friction):.3f} (true -5), "
-      f"evidence gain {evidence - evidence_builtin:.0f} nats over the built-in library")
+print(
+    f"the user's {friction} term: coefficient {eq.coef(friction):.3f} (true -5), "
+    f"evidence gain {evidence - evidence_builtin:.0f} nats over the built-in library"
+)

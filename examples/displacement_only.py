@@ -17,8 +17,9 @@ import casadi as ca
 import symsbl
 
 y, v, F = symsbl.symbols("y v F")
-truth = symsbl.OdeSystem((y, v), (F,), (v, (F - 2.0 * v - 3.0 * v * ca.fabs(v) - 1500 * y - 2e7 * y**3) / 0.8),
-                         name="vibrometer")
+truth = symsbl.OdeSystem(
+    (y, v), (F,), (v, (F - 2.0 * v - 3.0 * v * ca.fabs(v) - 1500 * y - 2e7 * y**3) / 0.8), name="vibrometer"
+)
 
 
 def displacement_record(seconds, seed):
@@ -43,8 +44,11 @@ for name, m in (("equation error", regression), ("output error", model)):
     check = symsbl.validate_model(m, held_out)
     truth_check = symsbl.compare_to_truth(m, truth)
     missing = [t for terms in truth_check.missing.values() for t in terms]
-    error = (f"largest coefficient error {100 * truth_check.max_error():.3g} %" if not missing
-             else f"missing {', '.join(missing)}")
+    error = (
+        f"largest coefficient error {100 * truth_check.max_error():.3g} %"
+        if not missing
+        else f"missing {', '.join(missing)}"
+    )
     print(f"{name:>15}: held-out y NRMSE {100 * check.nrmse['y']:.2f} %, {error}")
 
 comparison = symsbl.compare_to_truth(model, truth)

@@ -26,8 +26,9 @@ def physical(model):
 
 def main():
     available()  # exits, reported as skipped, when the data are missing
-    report = discrepancy(load("DATA_EMPS.mat"), "q: v; v: tau, v, 1", heldout=load("DATA_EMPS_PULSES.mat"),
-                         error="equation")
+    report = discrepancy(
+        load("DATA_EMPS.mat"), "q: v; v: tau, v, 1", heldout=load("DATA_EMPS_PULSES.mat"), error="equation"
+    )
     print(report)
     found = physical(report.final)
     print(f"\n{'':4s} {'found':>10s} {'published':>10s} {'difference':>11s}")

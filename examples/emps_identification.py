@@ -31,12 +31,14 @@ def physical(equation):
     M = 1.0 / a
     values = {"M": M, "Fv": -b * M, "Fc": -c * M, "OF": -d * M}
     # Jacobian of (M, Fv, Fc, OF) = (1, -b, -c, -d) / a with respect to (a, b, c, d)
-    J = np.array([
-        [-1 / a**2, 0, 0, 0],
-        [b / a**2, -1 / a, 0, 0],
-        [c / a**2, 0, -1 / a, 0],
-        [d / a**2, 0, 0, -1 / a],
-    ])
+    J = np.array(
+        [
+            [-1 / a**2, 0, 0, 0],
+            [b / a**2, -1 / a, 0, 0],
+            [c / a**2, 0, -1 / a, 0],
+            [d / a**2, 0, 0, -1 / a],
+        ]
+    )
     stds = np.sqrt(np.diag(J @ cov @ J.T))
     return values, dict(zip(values, stds))
 
@@ -64,12 +66,16 @@ def main():
     found, std = physical(model.equation("v"))
     print(f"\n{'':4s} {'found':>16s} {'published':>10s} {'difference':>11s} {'in std':>7s}")
     for name, ref in PUBLISHED.items():
-        print(f"{name:4s} {found[name]:9.4g} ± {std[name]:<5.2g} {ref:10.4g} {100 * (found[name] / ref - 1):9.2f} % "
-              f"{(found[name] - ref) / std[name]:7.2f}")
+        print(
+            f"{name:4s} {found[name]:9.4g} ± {std[name]:<5.2g} {ref:10.4g} {100 * (found[name] / ref - 1):9.2f} % "
+            f"{(found[name] - ref) / std[name]:7.2f}"
+        )
 
     ours, theirs = force_error(pulses, found), force_error(pulses, PUBLISHED)
-    print(f"\nforce predicted on the pulses record (held out): NRMSE {100 * ours:.2f} % "
-          f"(published parameters: {100 * theirs:.2f} %)")
+    print(
+        f"\nforce predicted on the pulses record (held out): NRMSE {100 * ours:.2f} % "
+        f"(published parameters: {100 * theirs:.2f} %)"
+    )
 
     assert model.equation("v").names == ["tau", "v", "sign(v)", "1"], model
     for name, ref in PUBLISHED.items():

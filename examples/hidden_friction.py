@@ -29,9 +29,11 @@ def main():
 
     (added,) = report.added
     first = report.steps[0]
-    print(f"\nadded {added.effect}: coefficient of {added.terms[0]} = {added.coef:.4g} (true {-KC:g}); "
-          f"held-out error {100 * first.error_heldout:.3g} % -> {100 * first.error_after:.3g} % "
-          f"({first.error_heldout / first.error_after:.1f}x lower; the noise is {100 * NOISE:g} %)")
+    print(
+        f"\nadded {added.effect}: coefficient of {added.terms[0]} = {added.coef:.4g} (true {-KC:g}); "
+        f"held-out error {100 * first.error_heldout:.3g} % -> {100 * first.error_after:.3g} % "
+        f"({first.error_heldout / first.error_after:.1f}x lower; the noise is {100 * NOISE:g} %)"
+    )
 
     assert added.effect == "coulomb_friction", report.verdict
     assert abs(added.coef - (-KC)) < 0.10 * KC, added.coef

@@ -4,11 +4,7 @@ import symsbl
 
 # Candidate terms are CasADi expressions of named symbols; libraries combine with +.
 x1, x2, F = symsbl.symbols("x1 x2 F")
-library = (
-    symsbl.polynomial([x1, x2], degree=3)
-    + symsbl.elementwise([x1, x2], ["sin", "sign"])
-    + symsbl.inputs([F])
-)
+library = symsbl.polynomial([x1, x2], degree=3) + symsbl.elementwise([x1, x2], ["sin", "sign"]) + symsbl.inputs([F])
 
 # Training data: x1'' + 20 x1' + 1e4 x1 + 1e9 x1^3 = F, driven by a 100 N, 10 Hz sine, 0.4 % noise.
 duffing = symsbl.systems.duffing()

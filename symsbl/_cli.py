@@ -44,24 +44,48 @@ def _run_library_file(path: Path, states, inputs):
     try:
         namespace = runpy.run_path(str(path))
     except SystemExit as exc:
-        raise LibraryError(expected(f"--library {str(path)!r}", "a file that defines `library`",
-                                    f"a file that called sys.exit({exc.code!r})", raw=True)) from None
+        raise LibraryError(
+            expected(
+                f"--library {str(path)!r}",
+                "a file that defines `library`",
+                f"a file that called sys.exit({exc.code!r})",
+                raw=True,
+            )
+        ) from None
     except Exception as exc:  # noqa: BLE001 - the user's file may raise anything
         line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise LibraryError(expected(f"--library {str(path)!r}", "a Python file that runs",
-                                    f"{type(exc).__name__}{': ' + line if line else ''}", raw=True)) from None
+        raise LibraryError(
+            expected(
+                f"--library {str(path)!r}",
+                "a Python file that runs",
+                f"{type(exc).__name__}{': ' + line if line else ''}",
+                raw=True,
+            )
+        ) from None
     found = namespace.get("library")
     if callable(found) and not isinstance(found, Library):
         try:
             found = found(states, inputs)
         except Exception as exc:  # noqa: BLE001
-            raise LibraryError(expected(f"--library {str(path)!r}", "library(states, inputs) returning a Library",
-                                        f"{type(exc).__name__}: {exc}"[:160], raw=True)) from None
+            raise LibraryError(
+                expected(
+                    f"--library {str(path)!r}",
+                    "library(states, inputs) returning a Library",
+                    f"{type(exc).__name__}: {exc}"[:160],
+                    raw=True,
+                )
+            ) from None
     if not isinstance(found, Library):
         got = type(found).__name__ if found is not None else "no `library`"
-        raise LibraryError(expected(f"--library {str(path)!r}", "a file defining `library`, a symsbl Library (or a "
-                                    "function library(states, inputs) returning one) named like the data's columns",
-                                    got, raw=True))
+        raise LibraryError(
+            expected(
+                f"--library {str(path)!r}",
+                "a file defining `library`, a symsbl Library (or a "
+                "function library(states, inputs) returning one) named like the data's columns",
+                got,
+                raw=True,
+            )
+        )
     return found
 
 
@@ -76,8 +100,9 @@ def _library(spec: str, states, inputs, degree: int):
         return polynomial(list(states) + list(inputs), degree)
     path = Path(spec)
     if path.suffix != ".py" or not path.is_file():
-        raise LibraryError(expected("--library", "'paper', 'poly' or an existing Python file (.py) defining the "
-                                    "library", spec))
+        raise LibraryError(
+            expected("--library", "'paper', 'poly' or an existing Python file (.py) defining the library", spec)
+        )
     return _run_library_file(path, states, inputs)
 
 
@@ -98,8 +123,9 @@ def _outputs(args, inputs: list) -> None:
     if plots == "":
         raise DataError(expected("--plots", "a directory path", "''", "name the directory to write", raw=True))
     if plots and Path(plots).exists() and not Path(plots).is_dir():
-        raise LibraryError(expected("--plots", "a directory (created if missing)", f"{plots!r}, which is a file",
-                                    raw=True))
+        raise LibraryError(
+            expected("--plots", "a directory (created if missing)", f"{plots!r}, which is a file", raw=True)
+        )
     if plot or plots:
         from ._figures import require_matplotlib
 
@@ -131,9 +157,15 @@ def _read(args, path, states, inputs, *, optional=()):
     if optional:
         absent = [s for s in states if s not in present and s not in optional]
         if absent:
-            raise DataError(expected(
-                f"--states {','.join(absent)}", "a column of DATA (the position of each --kinematics pair is "
-                "measured; its velocity and latent states may be absent)", "no such column", raw=True))
+            raise DataError(
+                expected(
+                    f"--states {','.join(absent)}",
+                    "a column of DATA (the position of each --kinematics pair is "
+                    "measured; its velocity and latent states may be absent)",
+                    "no such column",
+                    raw=True,
+                )
+            )
         states = [s for s in states if s in present or s not in optional]
     try:
         return columns_trajectory(columns, path, states=states, inputs=inputs, time=time, fs=args.fs)
@@ -143,9 +175,15 @@ def _read(args, path, states, inputs, *, optional=()):
         absent = [s for s in states if s not in present]  # a velocity left out, its pair not declared?
         if not absent or len(absent) == len(states):
             raise
-        raise DataError(expected(f"--states {','.join(absent)}", "a column of DATA", "no such column",
-                                 f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics "
-                                 f"<position>:{absent[0]}", raw=True)) from None
+        raise DataError(
+            expected(
+                f"--states {','.join(absent)}",
+                "a column of DATA",
+                "no such column",
+                f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics <position>:{absent[0]}",
+                raw=True,
+            )
+        ) from None
 
 
 def _unmeasured_allowed(states, kinematics) -> tuple:
@@ -174,48 +212,94 @@ def _read_all(args, paths, states, inputs, *, optional=()) -> list:
     first = records[0]
     for path, r in zip(paths[1:], records[1:]):
         if (r.state_names, r.input_names) != (first.state_names, first.input_names):
-            raise DataError(expected(f"DATA {path!r}", f"the columns of {paths[0]!r} "
-                                     f"{list(first.state_names + first.input_names)}",
-                                     f"{list(r.state_names + r.input_names)}", "give files of one test campaign, "
-                                     "each with the same columns", raw=True))
+            raise DataError(
+                expected(
+                    f"DATA {path!r}",
+                    f"the columns of {paths[0]!r} {list(first.state_names + first.input_names)}",
+                    f"{list(r.state_names + r.input_names)}",
+                    "give files of one test campaign, each with the same columns",
+                    raw=True,
+                )
+            )
     return records
 
 
 def _cmd_identify(args) -> int:
-    from ._base.checks import integer
-    from ._base.rule import SelectionRule
-    from ._derivatives.weakform import WeakForm
-    from ._identify import identify
-    from ._refine.options import RefineOptions
     from ._symbolic.symbols import symbols
 
     states, inputs, outputs = _names(args.states), _names(args.inputs), _names(args.outputs)
     _outputs(args, [*args.data, args.library if str(args.library).endswith(".py") else None])
     accelerations = _accelerations(states, args.kinematics)
-    records = _read_all(args, args.data, states + accelerations + outputs, inputs,
-                        optional=_unmeasured_allowed(states, args.kinematics))
+    records = _read_all(
+        args, args.data, states + accelerations + outputs, inputs, optional=_unmeasured_allowed(states, args.kinematics)
+    )
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
+    derivative = _identify_derivative(args)
+    model = _identify_model(args, records, library, derivative, states, outputs)
+    _print_identified(args, model, records, library)
+    return 0 if any(eq.terms for eq in model.equations) else 1
+
+
+def _identify_derivative(args):
+    """Check ``--overlap`` and return the derivative method identify takes: the name, or a weak form."""
+    from ._base.checks import integer
+    from ._derivatives.weakform import WeakForm
+
     derivative = args.derivative
     integer("--overlap", args.overlap, low=1)
     if args.overlap != 1:
         if derivative != "weak":
-            raise ParameterError(expected("--overlap", "1 unless --derivative is weak",
-                                          f"--overlap {args.overlap} with --derivative {derivative}", raw=True))
+            raise ParameterError(
+                expected(
+                    "--overlap",
+                    "1 unless --derivative is weak",
+                    f"--overlap {args.overlap} with --derivative {derivative}",
+                    raw=True,
+                )
+            )
         derivative = WeakForm(overlap=args.overlap)
-    options = RefineOptions(noise=args.noise, doubts=args.doubts,
-                            **({"interpolation": args.interpolation} if args.interpolation else {}))
+    return derivative
+
+
+def _identify_model(args, records, library, derivative, states, outputs):
+    """Run :func:`identify` with the command's options, naming the option in its errors."""
+    from ._base.rule import SelectionRule
+    from ._identify import identify
+    from ._refine.options import RefineOptions
+
+    options = RefineOptions(
+        noise=args.noise, doubts=args.doubts, **({"interpolation": args.interpolation} if args.interpolation else {})
+    )
     try:
-        model = identify(records if len(records) > 1 else records[0], library, derivative=derivative, states=states,
-                         kinematics=args.kinematics or None, refine=False if args.no_refine else options,
-                         selection=SelectionRule(model_choice=args.selection), outputs=outputs)
+        return identify(
+            records if len(records) > 1 else records[0],
+            library,
+            derivative=derivative,
+            states=states,
+            kinematics=args.kinematics or None,
+            refine=False if args.no_refine else options,
+            selection=SelectionRule(model_choice=args.selection),
+            outputs=outputs,
+        )
     except SymsblError as err:  # name the option, not the keyword behind it
         raise type(err)(str(err).replace("WeakForm.overlap:", "--overlap:", 1)) from None
+
+
+def _print_identified(args, model, records, library) -> None:
+    """Print the identified model with its diagnosis, and write ``--json`` and ``--plot``."""
     estimator = model.metadata.get("estimator", {})
-    how = ("output error (refined)" if model.fit.value == "output-error" else
-           "equation error (output error is biased here)" if estimator.get("used") == "equation-error" else
-           "equation error")
-    where = (f"{records[0].n_samples} samples at {records[0].fs:.6g} Hz" if len(records) == 1 else
-             f"{len(records)} records ({sum(r.n_samples for r in records)} samples)")
+    how = (
+        "output error (refined)"
+        if model.fit.value == "output-error"
+        else "equation error (output error is biased here)"
+        if estimator.get("used") == "equation-error"
+        else "equation error"
+    )
+    where = (
+        f"{records[0].n_samples} samples at {records[0].fs:.6g} Hz"
+        if len(records) == 1
+        else f"{len(records)} records ({sum(r.n_samples for r in records)} samples)"
+    )
     print(f"identified from {where} with {len(library)} candidate terms, coefficients by {how}:")
     print(model)
     for line in _diagnosis(model):
@@ -233,7 +317,6 @@ def _cmd_identify(args) -> int:
 
         model_path_figure(model).savefig(args.plot)
         print(f"figure written to {args.plot}")
-    return 0 if any(eq.terms for eq in model.equations) else 1
 
 
 def _diagnosis(model) -> list[str]:
@@ -246,15 +329,19 @@ def _diagnosis(model) -> list[str]:
         lines.append("noise model: " + ", ".join(f"{k} {m}" for k, m in coloured.items()))
     for t in refine.get("residual", []):
         if not (t["white"] and t["independent"] and t["open_loop"]):
-            lines.append(f"residual test of {t['channel']}: " + ("" if t["white"] else
-                         f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g}) ")
-                         + " ".join(f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1)
-                         + " ".join(f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1))
+            lines.append(
+                f"residual test of {t['channel']}: "
+                + ("" if t["white"] else f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g}) ")
+                + " ".join(f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1)
+                + " ".join(f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1)
+            )
     for reason in model.metadata.get("estimator", {}).get("doubts", []):
         lines.append(f"output error doubted: {reason}")
     if refine.get("short_segments"):
-        lines.append(f"fitted on segments of at most {refine['short_segments']} samples, each from its own initial "
-                     "state (the residual is not the measurement noise the likelihood describes)")
+        lines.append(
+            f"fitted on segments of at most {refine['short_segments']} samples, each from its own initial "
+            "state (the residual is not the measurement noise the likelihood describes)"
+        )
     chosen = model.path.chosen if len(model.path) else None
     if chosen is not None and chosen.source != "evidence":
         lines.append(f"structure chosen from the model path ({chosen.source}): {model.path.rule}")
@@ -264,10 +351,15 @@ def _diagnosis(model) -> list[str]:
 def _latent_summary(info: dict) -> str:
     """What the latent-state pipeline found, in two lines."""
     branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
-    record = (f"{info['periods']} periods of {info['period_samples']} samples; noise of their average"
-              if info["periodic"] else "a transient record; noise")
-    return (f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} "
-            f"({record} {info['noise_std_of_average']:.3g})")
+    record = (
+        f"{info['periods']} periods of {info['period_samples']} samples; noise of their average"
+        if info["periodic"]
+        else "a transient record; noise"
+    )
+    return (
+        f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} "
+        f"({record} {info['noise_std_of_average']:.3g})"
+    )
 
 
 def _cmd_validate(args) -> int:
@@ -279,8 +371,10 @@ def _cmd_validate(args) -> int:
     channels = [o.name for o in model.observation if o.state is None]
     # a record may hold any of the model's channels: the states it lacks start as unknowns or from the others
     optional = tuple(model.state_names) + tuple(channels)
-    records = [_read(args, path, list(model.state_names) + channels, model.input_names, optional=optional)
-               for path in args.data]
+    records = [
+        _read(args, path, list(model.state_names) + channels, model.input_names, optional=optional)
+        for path in args.data
+    ]
     results = []
     for path, traj in zip(args.data, records):
         try:
@@ -295,8 +389,9 @@ def _cmd_validate(args) -> int:
             _write_json(args.json, docs[0])
         else:
             worst = "diverged" if any(r.status != "ok" for r in results) else "ok"
-            _write_json(args.json, {"status": worst, "records": [dict(data=str(p), **d)
-                                                                 for p, d in zip(args.data, docs)]})
+            _write_json(
+                args.json, {"status": worst, "records": [dict(data=str(p), **d) for p, d in zip(args.data, docs)]}
+            )
     if args.plot is not None:
         from .plots import figure2
 
@@ -307,9 +402,14 @@ def _cmd_validate(args) -> int:
 
 def _validation_doc(result) -> dict:
     """What ``validate --json`` writes of one record's validation."""
-    return {"status": result.status, "diverged_at": result.diverged_at, "nrmse": result.nrmse, "fit": result.fit,
-            **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
-            **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse})}
+    return {
+        "status": result.status,
+        "diverged_at": result.diverged_at,
+        "nrmse": result.nrmse,
+        "fit": result.fit,
+        **({} if result.coverage is None else {"coverage": result.coverage, "noise_std": result.noise_std}),
+        **({} if result.horizon is None else {"horizon": result.horizon, "short_nrmse": result.short_nrmse}),
+    }
 
 
 def _cmd_discrepancy(args) -> int:
@@ -327,18 +427,30 @@ def _cmd_discrepancy(args) -> int:
     states, inputs = _names(args.states), _names(args.inputs)
     _outputs(args, [args.data, args.held_out, args.effects])
     if args.held_out is not None and (args.held_out == "" or same_file(args.held_out, args.data)):
-        raise DataError(expected("--held-out", "a record other than DATA (errors on the data a model was fitted to "
-                                 "say nothing of how it predicts)", repr(args.held_out) + ", which is DATA" *
-                                 (args.held_out != ""), "leave --held-out out to hold out the last 30 % of DATA",
-                                 raw=True))
+        raise DataError(
+            expected(
+                "--held-out",
+                "a record other than DATA (errors on the data a model was fitted to say nothing of how it predicts)",
+                repr(args.held_out) + ", which is DATA" * (args.held_out != ""),
+                "leave --held-out out to hold out the last 30 % of DATA",
+                raw=True,
+            )
+        )
     from ._derivatives.kinematics import parse_kinematics
 
     velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
     traj = _read(args, args.data, states, inputs, optional=velocities)  # displacement only: velocities estimated
     heldout = _read(args, args.held_out, states, inputs, optional=velocities) if args.held_out else None
-    report = discrepancy(traj, args.base, heldout=heldout, error=args.error, effects=effects,
-                         kinematics=args.kinematics or None, evidence=args.evidence,
-                         search_library=not args.no_library)
+    report = discrepancy(
+        traj,
+        args.base,
+        heldout=heldout,
+        error=args.error,
+        effects=effects,
+        kinematics=args.kinematics or None,
+        evidence=args.evidence,
+        search_library=not args.no_library,
+    )
     print(report)
     if args.json is not None:
         _write_json(args.json, report.to_json())
@@ -366,60 +478,128 @@ def _cmd_demo(args) -> int:
 
 def _data_options(p, *, states: bool = True, optional: bool = False, several: bool = False) -> None:
     if several:
-        p.add_argument("data", nargs="+", help="one or several records (CSV with a header row, .npz or .mat), "
-                       "fitted together, each with its own initial state and noise level")
+        p.add_argument(
+            "data",
+            nargs="+",
+            help="one or several records (CSV with a header row, .npz or .mat), "
+            "fitted together, each with its own initial state and noise level",
+        )
     else:
         p.add_argument("data", nargs="?" if optional else None, help="CSV with a header row, .npz or .mat")
     if states:
         p.add_argument("--states", required=not optional, help="comma-separated state columns, e.g. x1,x2")
         p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
     p.add_argument("--time", default="t", help="time column (default: t; '' for none, then --fs is needed)")
-    p.add_argument("--fs", type=float, default=None, metavar="HZ",
-                   help="sample rate: builds the time grid when there is no time column, or replaces a "
-                        "time column rounded to a coarse resolution")
+    p.add_argument(
+        "--fs",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="sample rate: builds the time grid when there is no time column, or replaces a "
+        "time column rounded to a coarse resolution",
+    )
 
 
 def _add_identify(sub, common) -> None:
-    from ._derivatives.registry import DIFFERENTIATORS
-
     p = sub.add_parser("identify", parents=[common], help="identify equations of motion from one or several data files")
     _data_options(p, several=True)
-    p.add_argument("--library", default="paper",
-                   help="'paper' (Eq. 21), 'poly', or a .py file defining `library` (its Python runs)")
-    p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
-    p.add_argument("--derivative", default="weak", choices=list(DIFFERENTIATORS),
-                   help="how targets are built (default: weak)")
-    p.add_argument("--overlap", type=int, default=1, metavar="Q",
-                   help="weak form: test functions per window length (default: 1, windows apart; 2: half overlap, "
-                        "rows whitened for the noise correlation they share)")
-    p.add_argument("--kinematics", default="", metavar="X:V[:A][,...]",
-                   help="position:velocity pairs with x' = v exactly (fixed, not identified), each with the column of "
-                        "an accelerometer that measures v' as a third name if there is one; any member may be absent "
-                        "from DATA (unmeasured), e.g. --kinematics y:v or x1:v1:a1,x2:v2:a2")
-    p.add_argument("--outputs", default="", metavar="NAME[,...]",
-                   help="columns with an equation of their own over the library (a force cell), identified with the "
-                        "states, e.g. --outputs Fc")
-    p.add_argument("--no-refine", action="store_true",
-                   help="stop at the equation-error fit (default: refine every coefficient by output error)")
-    p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
-                   help="how the inputs run between samples while refining (default: cubic, periodic when a state "
-                        "is latent; hold: a digital controller's stepped output)")
-    p.add_argument("--noise", default="auto", type=_noise_option, metavar="{auto,white,0..8}",
-                   help="output-error noise model: auto (default: an autoregressive filter per measured channel, its "
-                        "order by BIC, white when the residual is), white, or an order")
-    p.add_argument("--selection", default="validated", choices=["validated", "evidence"],
-                   help="how the structure is chosen from the model path: validated (default: from the simplest, a "
-                        "richer structure only where it lowers the cross-validated free-run error by more than one "
-                        "standard error and by a tenth of its gap to the noise floor) or evidence")
-    p.add_argument("--doubts", default="adapt", choices=["adapt", "report"],
-                   help="when the residual tests doubt output error's likelihood: adapt (default: refit on short "
-                        "segments; in a closed loop report the equation-error model) or report (warn only)")
-    p.add_argument("--path", action="store_true",
-                   help="print the model path: each candidate structure with its evidence and cross-validated error")
-    p.add_argument("--json", help="write the identified model as JSON to this file")
-    p.add_argument("--plot", metavar="FILE", help="write the model path (cross-validated error against the number "
-                   "of terms) and the residual tests to FILE, e.g. path.png (needs matplotlib)")
+    _add_identify_model(p)
+    _add_identify_refine(p)
+    _add_identify_outputs(p)
     p.set_defaults(func=_cmd_identify)
+
+
+def _add_identify_model(p) -> None:
+    """Add the options that set up the candidate library, the derivatives and the modelled channels."""
+    from ._derivatives.registry import DIFFERENTIATORS
+
+    p.add_argument(
+        "--library",
+        default="paper",
+        help="'paper' (Eq. 21), 'poly', or a .py file defining `library` (its Python runs)",
+    )
+    p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
+    p.add_argument(
+        "--derivative", default="weak", choices=list(DIFFERENTIATORS), help="how targets are built (default: weak)"
+    )
+    p.add_argument(
+        "--overlap",
+        type=int,
+        default=1,
+        metavar="Q",
+        help="weak form: test functions per window length (default: 1, windows apart; 2: half overlap, "
+        "rows whitened for the noise correlation they share)",
+    )
+    p.add_argument(
+        "--kinematics",
+        default="",
+        metavar="X:V[:A][,...]",
+        help="position:velocity pairs with x' = v exactly (fixed, not identified), each with the column of "
+        "an accelerometer that measures v' as a third name if there is one; any member may be absent "
+        "from DATA (unmeasured), e.g. --kinematics y:v or x1:v1:a1,x2:v2:a2",
+    )
+    p.add_argument(
+        "--outputs",
+        default="",
+        metavar="NAME[,...]",
+        help="columns with an equation of their own over the library (a force cell), identified with the "
+        "states, e.g. --outputs Fc",
+    )
+
+
+def _add_identify_refine(p) -> None:
+    """Add the options of the output-error refinement and of the structure selection."""
+    p.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="stop at the equation-error fit (default: refine every coefficient by output error)",
+    )
+    p.add_argument(
+        "--interpolation",
+        default=None,
+        choices=list(INTERPOLATIONS),
+        help="how the inputs run between samples while refining (default: cubic, periodic when a state "
+        "is latent; hold: a digital controller's stepped output)",
+    )
+    p.add_argument(
+        "--noise",
+        default="auto",
+        type=_noise_option,
+        metavar="{auto,white,0..8}",
+        help="output-error noise model: auto (default: an autoregressive filter per measured channel, its "
+        "order by BIC, white when the residual is), white, or an order",
+    )
+    p.add_argument(
+        "--selection",
+        default="validated",
+        choices=["validated", "evidence"],
+        help="how the structure is chosen from the model path: validated (default: from the simplest, a "
+        "richer structure only where it lowers the cross-validated free-run error by more than one "
+        "standard error and by a tenth of its gap to the noise floor) or evidence",
+    )
+    p.add_argument(
+        "--doubts",
+        default="adapt",
+        choices=["adapt", "report"],
+        help="when the residual tests doubt output error's likelihood: adapt (default: refit on short "
+        "segments; in a closed loop report the equation-error model) or report (warn only)",
+    )
+
+
+def _add_identify_outputs(p) -> None:
+    """Add the options that print the model path and write the model and its figure."""
+    p.add_argument(
+        "--path",
+        action="store_true",
+        help="print the model path: each candidate structure with its evidence and cross-validated error",
+    )
+    p.add_argument("--json", help="write the identified model as JSON to this file")
+    p.add_argument(
+        "--plot",
+        metavar="FILE",
+        help="write the model path (cross-validated error against the number "
+        "of terms) and the residual tests to FILE, e.g. path.png (needs matplotlib)",
+    )
 
 
 def _noise_option(text: str):
@@ -429,46 +609,83 @@ def _noise_option(text: str):
 
 
 def _add_validate(sub, common) -> None:
-    p = sub.add_parser("validate", aliases=["simulate"], parents=[common],
-                       help="re-simulate a saved model on a data file and print its errors")
+    p = sub.add_parser(
+        "validate",
+        aliases=["simulate"],
+        parents=[common],
+        help="re-simulate a saved model on a data file and print its errors",
+    )
     p.add_argument("model", help="model JSON written by `symsbl identify --json`")
     _data_options(p, states=False, several=True)
-    p.add_argument("--json", help="write the errors as JSON to this file (several DATA: one entry per record under "
-                   "'records')")
-    p.add_argument("--band", type=int, default=0, metavar="N",
-                   help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
-                        "(default: 0, no band)")
-    p.add_argument("--interpolation", default=None, choices=list(INTERPOLATIONS),
-                   help="how the inputs run between samples (default: as the model was refined, else cubic)")
-    p.add_argument("--plot", metavar="FILE", help="write the paper's Figure 2 for this record to FILE, e.g. fig.png "
-                   "(needs matplotlib)")
+    p.add_argument(
+        "--json", help="write the errors as JSON to this file (several DATA: one entry per record under 'records')"
+    )
+    p.add_argument(
+        "--band",
+        type=int,
+        default=0,
+        metavar="N",
+        help="Monte Carlo draws for the 3-sigma predictive band; prints the share of samples inside it "
+        "(default: 0, no band)",
+    )
+    p.add_argument(
+        "--interpolation",
+        default=None,
+        choices=list(INTERPOLATIONS),
+        help="how the inputs run between samples (default: as the model was refined, else cubic)",
+    )
+    p.add_argument(
+        "--plot",
+        metavar="FILE",
+        help="write the paper's Figure 2 for this record to FILE, e.g. fig.png (needs matplotlib)",
+    )
     p.set_defaults(func=_cmd_validate)
 
 
 def _add_discrepancy(sub, common) -> None:
     from ._discrepancy.design import ERROR_MEASURES
 
-    p = sub.add_parser("discrepancy", parents=[common],
-                       help="find the physical effect a model is missing, add it, show the gain")
+    p = sub.add_parser(
+        "discrepancy", parents=[common], help="find the physical effect a model is missing, add it, show the gain"
+    )
     _data_options(p, optional=True)
-    p.add_argument("--base", help="starting model per state, e.g. \"x1: x2; x2: F, x1, x2\" (1: offset)")
-    p.add_argument("--kinematics", default="", metavar="X:V[,...]",
-                   help="position:velocity pairs to search, e.g. x1:v1,x2:v2 (default: every base equation 'x: v'); "
-                        "effects between coupled pairs are searched too; a velocity absent from DATA is unmeasured "
-                        "(output-error evidence fits the positions alone)")
-    p.add_argument("--effects", metavar="FILE", help="user effects, one 'name: expression' line each in x and v "
-                   "(displacement, velocity of a pair), optionally '; dissipative'")
+    p.add_argument("--base", help='starting model per state, e.g. "x1: x2; x2: F, x1, x2" (1: offset)')
+    p.add_argument(
+        "--kinematics",
+        default="",
+        metavar="X:V[,...]",
+        help="position:velocity pairs to search, e.g. x1:v1,x2:v2 (default: every base equation 'x: v'); "
+        "effects between coupled pairs are searched too; a velocity absent from DATA is unmeasured "
+        "(output-error evidence fits the positions alone)",
+    )
+    p.add_argument(
+        "--effects",
+        metavar="FILE",
+        help="user effects, one 'name: expression' line each in x and v "
+        "(displacement, velocity of a pair), optionally '; dissipative'",
+    )
     p.add_argument("--list-effects", action="store_true", help="print the catalogue (with --effects) and exit")
-    p.add_argument("--evidence", default=None, choices=["output-error", "equation-error"],
-                   help="how effects are scored (default: output-error; equation-error with --error equation)")
-    p.add_argument("--no-library", action="store_true",
-                   help="search the catalogue only (default: library terms outside it are tried too)")
+    p.add_argument(
+        "--evidence",
+        default=None,
+        choices=["output-error", "equation-error"],
+        help="how effects are scored (default: output-error; equation-error with --error equation)",
+    )
+    p.add_argument(
+        "--no-library",
+        action="store_true",
+        help="search the catalogue only (default: library terms outside it are tried too)",
+    )
     p.add_argument("--held-out", help="held-out record (default: the last 30 %% of DATA)")
-    p.add_argument("--error", default="simulation", choices=list(ERROR_MEASURES),
-                   help="held-out error (default: simulation)")
+    p.add_argument(
+        "--error", default="simulation", choices=list(ERROR_MEASURES), help="held-out error (default: simulation)"
+    )
     p.add_argument("--json", help="write the report as JSON to this file")
-    p.add_argument("--plot", metavar="FILE", help="write the before/after, residual-map and evidence figure to FILE, "
-                   "e.g. report.png (needs matplotlib)")
+    p.add_argument(
+        "--plot",
+        metavar="FILE",
+        help="write the before/after, residual-map and evidence figure to FILE, e.g. report.png (needs matplotlib)",
+    )
     p.set_defaults(func=_cmd_discrepancy)
 
 
@@ -484,23 +701,33 @@ def _version() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``symsbl`` command."""
-    parser = _Parser(prog="symsbl", description="Sparse Bayesian identification of nonlinear ODEs from sampled data.",
-                     epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()))
+    parser = _Parser(
+        prog="symsbl",
+        description="Sparse Bayesian identification of nonlinear ODEs from sampled data.",
+        epilog="exit codes: " + "; ".join(f"{k} {v}" for k, v in EXIT_CODES.items()),
+    )
     parser.add_argument("--version", action="version", version=f"symsbl {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     common = _Parser(add_help=False)  # a parent: only its arguments are copied
-    common.add_argument("--quiet", action="store_true",
-                        help="no progress lines (they are shown only on a terminal, for steps longer than 0.5 s)")
+    common.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress lines (they are shown only on a terminal, for steps longer than 0.5 s)",
+    )
     _add_identify(sub, common)
     _add_validate(sub, common)
     _add_discrepancy(sub, common)
     p = sub.add_parser("demo", parents=[common], help="the paper's five systems end to end")
     p.add_argument("--seed", type=int, default=0, help="noise seed >= 0 (default: 0)")
     p.add_argument("--quick", action="store_true", help="shorter records (for a fast check)")
-    p.add_argument("--no-refine", action="store_true",
-                   help="the equation-error models only (default: refined by output error, both shown)")
-    p.add_argument("--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR "
-                   "(needs matplotlib)")
+    p.add_argument(
+        "--no-refine",
+        action="store_true",
+        help="the equation-error models only (default: refined by output error, both shown)",
+    )
+    p.add_argument(
+        "--plots", metavar="DIR", help="write the paper's Figure 2 for each system as PNG into DIR (needs matplotlib)"
+    )
     p.set_defaults(func=_cmd_demo)
     return parser
 

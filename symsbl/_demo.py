@@ -58,8 +58,9 @@ class DemoResult:
     start_heldout: Validation | None = None
 
 
-def run_case(name: str, *, seed: int = 0, duration: float = 3.0, degree: int = 6, forcing=None,
-             refine: bool = True) -> DemoResult:
+def run_case(
+    name: str, *, seed: int = 0, duration: float = 3.0, degree: int = 6, forcing=None, refine: bool = True
+) -> DemoResult:
     """Simulate, identify and validate one of :data:`CASES`.
 
     Parameters
@@ -92,8 +93,16 @@ def run_case(name: str, *, seed: int = 0, duration: float = 3.0, degree: int = 6
     heldout_input = Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=seed + 1)
     heldout = simulate(system, time_grid(1.0, FS), inputs=heldout_input).with_noise(NOISE, seed=seed + 1000)
     before = (compare_to_truth(first, system, clean), validate_model(first, heldout)) if refine else (None, None)
-    return DemoResult(name, system, model, compare_to_truth(model, system, clean), validate_model(model, heldout),
-                      seconds, train, *before)
+    return DemoResult(
+        name,
+        system,
+        model,
+        compare_to_truth(model, system, clean),
+        validate_model(model, heldout),
+        seconds,
+        train,
+        *before,
+    )
 
 
 def _format_truth(system) -> list[str]:
@@ -124,9 +133,11 @@ def run_demo(*, seed: int = 0, quick: bool = False, out=print, cases=None, refin
     (True, 'ok')
     """
     duration, degree = (1.5, 3) if quick else (3.0, 6)
-    out(f"symsbl demo: the five systems of Fuentes et al. (2019); {duration:g} s at {FS:g} Hz from rest, "
+    out(
+        f"symsbl demo: the five systems of Fuentes et al. (2019); {duration:g} s at {FS:g} Hz from rest, "
         f"100 N sine at 10 Hz, {100 * NOISE:g} % noise, Eq. 21 dictionary to degree {degree}; "
-        "held-out: 1 s random-phase multisine 2-30 Hz, 60 N rms.\n")
+        "held-out: 1 s random-phase multisine 2-30 Hz, 60 N rms.\n"
+    )
     results = []
     for name in CASES if cases is None else cases:
         choice("cases", name, CASES)
@@ -151,20 +162,26 @@ def _worst(check: Validation) -> str:
 def _table(results: list[DemoResult], out) -> None:
     """One row per system; with refinement, the equation-error stage before each output-error figure."""
     refined = any(r.start is not None for r in results)
-    out(f"{'system':20s} {'support':>8s} {'max coef err (%)':>20s} {'all terms err (%)':>20s} "
-        f"{'held-out NRMSE (%)':>20s} {'time':>7s}")
+    out(
+        f"{'system':20s} {'support':>8s} {'max coef err (%)':>20s} {'all terms err (%)':>20s} "
+        f"{'held-out NRMSE (%)':>20s} {'time':>7s}"
+    )
     for r in results:
         cells = [(r.truth.max_error(min_share=0.05), r.truth.max_error(), _worst(r.heldout))]
         if r.start is not None and r.start_heldout is not None:  # set together
             cells.insert(0, (r.start.max_error(min_share=0.05), r.start.max_error(), _worst(r.start_heldout)))
         columns = zip(*[(f"{100 * a:.3f}", f"{100 * b:.3f}", h) for a, b, h in cells])
         big, small, held = (" -> ".join(c) for c in columns)
-        out(f"{r.name:20s} {'exact' if r.truth.exact_support else 'WRONG':>8s} {big:>20s} {small:>20s} {held:>20s} "
-            f"{r.seconds:6.1f}s")
-    out(("\nequation error -> output error. " if refined else "\n")
+        out(
+            f"{r.name:20s} {'exact' if r.truth.exact_support else 'WRONG':>8s} {big:>20s} {small:>20s} {held:>20s} "
+            f"{r.seconds:6.1f}s"
+        )
+    out(
+        ("\nequation error -> output error. " if refined else "\n")
         + "max coef err: terms carrying >= 5 % of their equation's variance; all terms err: every term (e.g. "
         "Coulomb friction, about 0.01 % of the variance). Held-out NRMSE: worst state, against the noisy "
-        f"held-out record (noise floor {100 * NOISE:g} %). Time: identification.")
+        f"held-out record (noise floor {100 * NOISE:g} %). Time: identification."
+    )
 
 
 def write_figures(results: list[DemoResult], directory, *, n_band: int = 30, seed: int = 0) -> list:

@@ -8,8 +8,20 @@ from ._base.errors import MissingExtraError, expected
 from ._base.format import pretty
 from ._data.trajectory import Trajectory
 
-__all__ = ["new_figure", "term_label", "forcing_window", "MEASURED", "MODEL", "BAND", "PRIOR", "POSTERIOR",
-           "BEFORE", "AFTER", "MATPLOTLIB_MISSING", "require_matplotlib"]
+__all__ = [
+    "new_figure",
+    "term_label",
+    "forcing_window",
+    "MEASURED",
+    "MODEL",
+    "BAND",
+    "PRIOR",
+    "POSTERIOR",
+    "BEFORE",
+    "AFTER",
+    "MATPLOTLIB_MISSING",
+    "require_matplotlib",
+]
 
 #: Colours of the measured data, the model and its band (colour-blind safe pair).
 MEASURED = "0.2"
@@ -39,10 +51,13 @@ AFTER = MODEL
 
 #: The one-line error when matplotlib is missing, with an install hint that works from a clone and from an index.
 MATPLOTLIB_MISSING = expected(
-    "figures", "matplotlib to be installed", "ImportError",
+    "figures",
+    "matplotlib to be installed",
+    "ImportError",
     "pip install matplotlib (or pip install '.[plot]' from a clone of symsbl, pip install 'symsbl[plot]' "
     "from an index)",
-    raw=True)
+    raw=True,
+)
 
 
 def require_matplotlib() -> None:
@@ -79,5 +94,3 @@ def forcing_window(data: Trajectory, cycles: float = 1.0, *, threshold: float = 
     significant = np.flatnonzero(spectrum[1:] >= threshold * spectrum[1:].max()) + 1
     span = cycles / freqs[significant[0]]
     return max(t0, t1 - span), t1
-
-

@@ -147,33 +147,61 @@ def identify(
     _check_columns(columns, names, accelerations, algebraic)
     latent = latent_states(names, columns, pairs, accelerations)
     if latent:
-        if accelerations or algebraic:
-            given = list(accelerations.values()) + list(algebraic)
-            raise ParameterError(expected("states", "latent states with position records only (accelerations and "
-                                          "algebraic outputs with latent states are not identified yet)",
-                                          f"latent {list(latent)} with outputs {given}", raw=True))
+        _check_latent(latent, accelerations, algebraic)
         return identify_latent(trajectories, library, names, pairs, latent, refine_options=refine_options)
     present = {v: a for v, a in accelerations.items() if a in columns}
-    completed, unmeasured = complete_states(trajectories, names, pairs, present,
-                                            keep=tuple(present.values()) + algebraic)
-    problem = regression_stats(completed, library, derivative=derivative, chunk_size=chunk_size, jit=jit,
-                               states=names, derivatives=present, outputs=algebraic)
+    completed, unmeasured = complete_states(
+        trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
+    )
+    problem = regression_stats(
+        completed,
+        library,
+        derivative=derivative,
+        chunk_size=chunk_size,
+        jit=jit,
+        states=names,
+        derivatives=present,
+        outputs=algebraic,
+    )
     model = fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
     measured = tuple(n for n in names if n in columns)
-    observed = (state_outputs(measured) + tuple(AccelerationOutput(a, v) for v, a in present.items())
-                + tuple(AlgebraicOutput(n) for n in algebraic))
+    observed = (
+        state_outputs(measured)
+        + tuple(AccelerationOutput(a, v) for v, a in present.items())
+        + tuple(AlgebraicOutput(n) for n in algebraic)
+    )
     if unmeasured or present or algebraic:
         how = ", ".join(f"{n} by {_how(n, pairs, present, columns)}" for n in unmeasured)
-        model = dataclasses.replace(model, measured=measured, outputs=observed if present or algebraic else (),
-                                    metadata=dict(model.metadata, **({"unmeasured_estimate": how} if how else {})))
+        model = dataclasses.replace(
+            model,
+            measured=measured,
+            outputs=observed if present or algebraic else (),
+            metadata=dict(model.metadata, **({"unmeasured_estimate": how} if how else {})),
+        )
     if options is None:
         return model
     refined = refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
     return _reported(model, refined, completed, problem, rvm, rule, estimated=bool(unmeasured))
 
 
-def _reported(start: IdentifiedModel, refined: IdentifiedModel, records, problem, rvm, rule: SelectionRule,
-              estimated: bool) -> IdentifiedModel:
+def _check_latent(latent, accelerations: dict, algebraic: tuple) -> None:
+    """Latent states are identified from position records only."""
+    if accelerations or algebraic:
+        given = list(accelerations.values()) + list(algebraic)
+        raise ParameterError(
+            expected(
+                "states",
+                "latent states with position records only (accelerations and "
+                "algebraic outputs with latent states are not identified yet)",
+                f"latent {list(latent)} with outputs {given}",
+                raw=True,
+            )
+        )
+
+
+def _reported(
+    start: IdentifiedModel, refined: IdentifiedModel, records, problem, rvm, rule: SelectionRule, estimated: bool
+) -> IdentifiedModel:
     """The output error's model, or, where its likelihood does not hold (:func:`symsbl._refine.diagnostics.doubts`:
     process or input noise, a closed loop), the equation error's with each equation's structure validated by
     cross-validation (:mod:`symsbl._regression.path`); ``metadata["estimator"]`` says which and why."""
@@ -187,14 +215,18 @@ def _reported(start: IdentifiedModel, refined: IdentifiedModel, records, problem
     alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
     used = dict(used, used="equation-error", output_error=alternative)
     try:
-        folds = [regression_stats(piece, problem.library, derivative=problem.derivative, **problem.targets).stats
-                 for piece in _folds(records)]
+        folds = [
+            regression_stats(piece, problem.library, derivative=problem.derivative, **problem.targets).stats
+            for piece in _folds(records)
+        ]
     except DataError as error:  # folds too short for the library: the equation error's own selection stands
-        meta = dict(start.metadata, refine=refined.metadata.get("refine", {}),
-                    estimator=dict(used, validated=f"no: {error}"))
+        meta = dict(
+            start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated=f"no: {error}")
+        )
         return dataclasses.replace(start, metadata=meta)
-    again = regression_stats([_noisier(r) for r in records], problem.library, derivative=problem.derivative,
-                             **problem.targets)
+    again = regression_stats(
+        [_noisier(r) for r in records], problem.library, derivative=problem.derivative, **problem.targets
+    )
     model, path = validated_equations(start, problem, folds, template, rule, again.stats)
     meta = dict(start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated="yes"))
     return dataclasses.replace(model, metadata=meta, path=path)
@@ -205,8 +237,9 @@ def _algebraic(outputs) -> tuple[str, ...]:
     if isinstance(outputs, str):
         outputs = [n.strip() for n in outputs.split(",") if n.strip()]
     if not isinstance(outputs, (list, tuple)) or not all(isinstance(n, str) and n for n in outputs):
-        raise ParameterError(expected("outputs", "names of columns with an equation of their own (a force cell)",
-                                      outputs))
+        raise ParameterError(
+            expected("outputs", "names of columns with an equation of their own (a force cell)", outputs)
+        )
     return tuple(outputs)
 
 
@@ -215,8 +248,9 @@ def _check_columns(columns, names, accelerations: dict, algebraic) -> None:
     column is absent, is not needed."""
     clash = sorted(set(algebraic) & (set(names) | set(accelerations.values())))
     if clash:
-        raise ParameterError(expected("outputs", "columns named unlike the states and the accelerations", clash,
-                                      raw=True))
+        raise ParameterError(
+            expected("outputs", "columns named unlike the states and the accelerations", clash, raw=True)
+        )
     absent = [n for n in algebraic if n not in columns]
     if absent:
         raise DataError(expected(f"outputs {','.join(absent)}", "columns of the data", "no such column", raw=True))
@@ -241,8 +275,13 @@ def _noisier(record: Trajectory) -> Trajectory:
     def noisy(values, names):
         return values + np.array([levels[n] for n in names]) * rng.standard_normal(values.shape)
 
-    return Trajectory(record.t, noisy(record.states, record.state_names), noisy(record.inputs, record.input_names),
-                      record.state_names, record.input_names)
+    return Trajectory(
+        record.t,
+        noisy(record.states, record.state_names),
+        noisy(record.inputs, record.input_names),
+        record.state_names,
+        record.input_names,
+    )
 
 
 #: Contiguous folds of each record for the equation error's cross-validation.
@@ -264,8 +303,15 @@ def _refine_options(refine, refine_options) -> RefineOptions | None:
     """The refinement's options from ``identify``'s ``refine`` and ``refine_options`` (None: no refinement)."""
     if isinstance(refine, RefineOptions):
         if refine_options is not None:
-            raise ParameterError(expected("refine_options", "the refinement's options given once", "both refine="
-                                          "RefineOptions(...) and refine_options", "pass only one", raw=True))
+            raise ParameterError(
+                expected(
+                    "refine_options",
+                    "the refinement's options given once",
+                    "both refine=RefineOptions(...) and refine_options",
+                    "pass only one",
+                    raw=True,
+                )
+            )
         return as_options(refine, "refine")
     if not isinstance(refine, (bool, np.bool_)):
         raise ParameterError(expected("refine", "True, False or a RefineOptions", refine))

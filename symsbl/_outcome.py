@@ -119,9 +119,11 @@ def _reader_may_leave():
 def _warning_line(command: str, pressed):
     """Warnings as one line on standard error, like errors: ``symsbl <command>: warning: <message>``; none once
     ``pressed()`` (after Ctrl-C the one line is "interrupted")."""
+
     def show(message, category, filename, lineno, file=None, line=None):
         if not pressed():
             print(f"symsbl {command}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
     return show
 
 
@@ -142,5 +144,7 @@ def _outcome(command: str, work, quiet: bool, pressed) -> tuple[int, str | None]
             with contextlib.suppress(OSError, ValueError):
                 traceback.print_exc(file=sys.stderr)
             return 3, f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); please report it"
-        return 3, (f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
-                   "rerun with SYMSBL_TRACEBACK=1 and report it")
+        return 3, (
+            f"internal error ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
+            "rerun with SYMSBL_TRACEBACK=1 and report it"
+        )

@@ -31,8 +31,15 @@ from ._figures import BAND, MEASURED, MODEL, POSTERIOR, PRIOR, forcing_window, n
 from ._model import Equation, IdentifiedModel
 from ._validate.validate import Validation
 
-__all__ = ["figure2", "coefficient_uncertainty", "discrepancy_figure", "model_path_figure", "term_label",
-           "forcing_window"]
+__all__ = [
+    "figure2",
+    "coefficient_uncertainty",
+    "discrepancy_figure",
+    "model_path_figure",
+    "term_label",
+    "forcing_window",
+]
+
 
 def _equation_for(model: IdentifiedModel, state: str | None) -> Equation:
     if not model.equations:
@@ -71,8 +78,14 @@ def _response(ax, model: IdentifiedModel, validation: Validation, state: str, wi
     ax.plot(measured.t[keep], measured.column(state)[keep], color=MEASURED, lw=1.0, label="measured")
     sim_keep = (simulated.t >= t0) & (simulated.t <= t1)
     if sim_keep.any():
-        ax.plot(simulated.t[sim_keep], simulated.column(state)[sim_keep], color=MODEL, lw=1.0, ls="--",
-                label="identified model")
+        ax.plot(
+            simulated.t[sim_keep],
+            simulated.column(state)[sim_keep],
+            color=MODEL,
+            lw=1.0,
+            ls="--",
+            label="identified model",
+        )
     band, label = validation.predictive_band, r"3$\sigma$ predictive band"
     if band is None:
         band, label = validation.band, r"3$\sigma$ band (coefficients)"
@@ -187,8 +200,9 @@ def figure2(
     [True, True, True]
     """
     if not isinstance(validation, Validation):
-        raise DataError(expected("validation", "a Validation from symsbl.validate_model", type(validation).__name__,
-                                 raw=True))
+        raise DataError(
+            expected("validation", "a Validation from symsbl.validate_model", type(validation).__name__, raw=True)
+        )
     equation = _equation_for(model, state)
     shown = equation.lhs
     data = validation.measured if data is None else data
@@ -265,8 +279,15 @@ def coefficient_uncertainty(model: IdentifiedModel):
             ax.axvline(0.0, color="0.6", lw=0.8)
         ax.axvline(1.0, color="0.85", lw=0.8, zorder=0)
         for p, c, s in zip(pos, coefs, stds):
-            ax.annotate(format_uncertain(c, s), (1.0, p), xytext=(0, 5), textcoords="offset points",
-                        ha="center", va="bottom", fontsize="small")
+            ax.annotate(
+                format_uncertain(c, s),
+                (1.0, p),
+                xytext=(0, 5),
+                textcoords="offset points",
+                ha="center",
+                va="bottom",
+                fontsize="small",
+            )
     axes[-1].set_xlabel(r"coefficient / posterior mean, with $\pm 3\sigma$ interval")
     fig.suptitle("Posterior of the kept coefficients")
     return fig
@@ -300,9 +321,14 @@ def model_path_figure(model: IdentifiedModel):
     3
     """
     if not isinstance(model, IdentifiedModel) or not len(model.path):
-        raise DataError(expected("model", "an identified model with a model path (identify with output-error "
-                                 "refinement)", "none" if isinstance(model, IdentifiedModel) else type(model).__name__,
-                                 raw=True))
+        raise DataError(
+            expected(
+                "model",
+                "an identified model with a model path (identify with output-error refinement)",
+                "none" if isinstance(model, IdentifiedModel) else type(model).__name__,
+                raw=True,
+            )
+        )
     fig = new_figure(figsize=(11.0, 3.8), layout="constrained")
     from matplotlib.ticker import MaxNLocator  # matplotlib is there: new_figure checked it
 

@@ -65,8 +65,9 @@ def coulomb(kc: float = 1.0, m: float = 1.0, c: float = 20.0, k: float = 1e4) ->
     return _oscillator("coulomb", m, c, k, g=lambda x1, x2, p: p["kc"] * ca.sign(x2), extra=(("kc", kc),))
 
 
-def bouc_wen(A: float = 6800.0, n: int = 3, a: float = 1.5, b: float = -1.5,
-             m: float = 1.0, c: float = 20.0, k: float = 1e4) -> OdeSystem:
+def bouc_wen(
+    A: float = 6800.0, n: int = 3, a: float = 1.5, b: float = -1.5, m: float = 1.0, c: float = 20.0, k: float = 1e4
+) -> OdeSystem:
     """System 5: Bouc-Wen hysteresis with restoring force ``g = x3`` and Eq. (20)::
 
         x3' = -a |x2| x3**n       - b x2 |x3**n| + A x2     (n odd)
@@ -86,13 +87,22 @@ def bouc_wen(A: float = 6800.0, n: int = 3, a: float = 1.5, b: float = -1.5,
             hyst = x3 ** (n - 1) * ca.fabs(x3)
         return -p["a"] * ca.fabs(x2) * hyst - p["b"] * x2 * ca.fabs(x3**n) + p["A"] * x2
 
-    return _oscillator("bouc_wen", m, c, k, g=lambda x1, x2, p: x3, extra=(("A", A), ("a", a), ("b", b)),
-                       third_state=x3, third_rhs=x3dot)
+    return _oscillator(
+        "bouc_wen",
+        m,
+        c,
+        k,
+        g=lambda x1, x2, p: x3,
+        extra=(("A", A), ("a", a), ("b", b)),
+        third_state=x3,
+        third_rhs=x3dot,
+    )
 
 
 def lorenz(sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0) -> OdeSystem:
     """The Lorenz system (no inputs): ``x' = sigma (y - x)``, ``y' = x (rho - z) - y``, ``z' = x y - beta z``."""
     x, y, z = ca.SX.sym("x"), ca.SX.sym("y"), ca.SX.sym("z")
     s, r, bt = ca.SX.sym("sigma"), ca.SX.sym("rho"), ca.SX.sym("beta")
-    return OdeSystem((x, y, z), (), (s * (y - x), x * (r - z) - y, x * y - bt * z), (s, r, bt),
-                     (sigma, rho, beta), "lorenz")
+    return OdeSystem(
+        (x, y, z), (), (s * (y - x), x * (r - z) - y, x * y - bt * z), (s, r, bt), (sigma, rho, beta), "lorenz"
+    )

@@ -55,8 +55,9 @@ class SumOfSines:
 
     def __call__(self, t):
         t = np.asarray(t, dtype=float)
-        return np.sum(self.a[:, None] * np.cos(2 * np.pi * self.f[:, None] * t.ravel() + self.phi[:, None]),
-                      axis=0).reshape(t.shape)
+        return np.sum(
+            self.a[:, None] * np.cos(2 * np.pi * self.f[:, None] * t.ravel() + self.phi[:, None]), axis=0
+        ).reshape(t.shape)
 
     def scalar(self, t: float) -> float:
         return float(np.sum(self.a * np.cos(2 * np.pi * self.f * t + self.phi)))
@@ -77,6 +78,7 @@ def random_force(rms, f_min, f_max, rng, n=400) -> SumOfSines:
 
 def simulate(plant: Plant, force, t, disturbance=None) -> np.ndarray:
     """States ``(x, v)`` on the grid ``t`` from rest."""
+
     def total(tt):
         return force.scalar(tt) + (disturbance.scalar(tt) if disturbance is not None else 0.0)
 
@@ -91,11 +93,13 @@ def simulate(plant: Plant, force, t, disturbance=None) -> np.ndarray:
     t0, s0 = t[0], np.zeros(2)
     t0, sign, i = _stick(plant, total, t, t0, s0, out, 0)
     while i < t.size:
+
         def reversal(tt, s, sg):
             return s[1]
+
         reversal.terminal, reversal.direction = True, -sign
         sol = solve_ivp(rhs, (t0, t[-1]), list(s0), t_eval=t[i:], events=reversal, args=(sign,), **opts)
-        out[i:i + sol.y.shape[1]] = sol.y.T
+        out[i : i + sol.y.shape[1]] = sol.y.T
         i += sol.y.shape[1]
         if sol.status == 0 or i >= t.size:
             break
@@ -132,8 +136,19 @@ def _stick(plant, total, t, t0, s0, out, i):
 AR2 = (lambda r: np.array([1.0, -2 * r, r * r]))((10**0.5 - 1) / (10**0.5 + 1))
 
 
-def record(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, band=(2.0, 30.0), noise=0.01,
-           force_noise=0.0, process=0.0, coloured=False) -> symsbl.Trajectory:
+def record(
+    plant: Plant,
+    seed: int,
+    *,
+    fs=1000.0,
+    seconds=4.0,
+    rms=4.0,
+    band=(2.0, 30.0),
+    noise=0.01,
+    force_noise=0.0,
+    process=0.0,
+    coloured=False,
+) -> symsbl.Trajectory:
     """A measured record: noise of ``noise`` times each state's spread on ``x`` and ``v`` (white, or ``coloured``
     by :data:`AR2`), ``force_noise`` on the recorded force, and a random force of ``process`` times the input's rms
     that the record does not hold."""
@@ -150,8 +165,9 @@ def record(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, band=(2.
     return symsbl.Trajectory(t, states, f[:, None], ("x", "v"), ("F",))
 
 
-def closed_loop(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, gains=(2e3, 20.0), noise=0.01,
-                process=0.05) -> symsbl.Trajectory:
+def closed_loop(
+    plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, gains=(2e3, 20.0), noise=0.01, process=0.05
+) -> symsbl.Trajectory:
     """A record under a digital PD controller ``F_i = r_i - kp x_{i-1} - kd v_{i-1}`` on the previous sample's
     measurements, held over each sample: the input depends on the response to a random disturbance force the
     record does not hold (white over each sample, ``process`` times the reference's rms)."""
@@ -175,6 +191,7 @@ def closed_loop(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, gai
 def _rk4(plant: Plant, s, force, h):
     def f(z):
         return np.array([z[1], plant.acceleration(z[0], z[1], force)])
+
     k1 = f(s)
     k2 = f(s + h / 2 * k1)
     k3 = f(s + h / 2 * k2)
@@ -185,8 +202,9 @@ def _rk4(plant: Plant, s, force, h):
 def library() -> symsbl.Library:
     """Polynomials of degree 3 in ``x, v`` with absolute values, ``sin`` and ``sign`` of each, and the force."""
     x, v, F = symsbl.symbols("x v F")
-    return symsbl.polynomial([x, v], 3, absolute=True) + symsbl.elementwise([x, v], ["sin", "sign"]) + \
-        symsbl.inputs([F])
+    return (
+        symsbl.polynomial([x, v], 3, absolute=True) + symsbl.elementwise([x, v], ["sin", "sign"]) + symsbl.inputs([F])
+    )
 
 
 def accelerations(plant: Plant, states: np.ndarray, force: np.ndarray) -> np.ndarray:
@@ -201,8 +219,9 @@ def accelerations(plant: Plant, states: np.ndarray, force: np.ndarray) -> np.nda
     return a
 
 
-def accelerometer_record(plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, band=(2.0, 30.0),
-                         noise=0.01, keep=("a",)) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
+def accelerometer_record(
+    plant: Plant, seed: int, *, fs=1000.0, seconds=4.0, rms=4.0, band=(2.0, 30.0), noise=0.01, keep=("a",)
+) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
     """An accelerometer's record ``a`` (with ``noise`` times its spread, white) and the clean record of ``x``,
     ``v``, ``a`` it was taken from."""
     rng = np.random.default_rng(seed)
@@ -245,16 +264,27 @@ class Chain:
 
     def truth(self) -> dict:
         """The true coefficients of ``v1'`` and ``v2'`` in symsbl's term names."""
-        v1 = {"x1": -(self.k1 + self.k2) / self.m1, "v1": -(self.c1 + self.c2) / self.m1, "x2": self.k2 / self.m1,
-              "v2": self.c2 / self.m1, "x1**3": -self.k3 / self.m1}
+        v1 = {
+            "x1": -(self.k1 + self.k2) / self.m1,
+            "v1": -(self.c1 + self.c2) / self.m1,
+            "x2": self.k2 / self.m1,
+            "v2": self.c2 / self.m1,
+            "x1**3": -self.k3 / self.m1,
+        }
         if self.fc:
             v1["sign(v1)"] = -self.fc / self.m1
-        v2 = {"x1": self.k2 / self.m2, "v1": self.c2 / self.m2, "x2": -self.k2 / self.m2, "v2": -self.c2 / self.m2,
-              "F": 1 / self.m2}
+        v2 = {
+            "x1": self.k2 / self.m2,
+            "v1": self.c2 / self.m2,
+            "x2": -self.k2 / self.m2,
+            "v2": -self.c2 / self.m2,
+            "F": 1 / self.m2,
+        }
         return {"v1": v1, "v2": v2}
 
-    def record(self, seed: int, *, fs=1000.0, seconds=4.0, rms=5.0, band=(2.0, 40.0), noise=0.01,
-               substeps=16) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
+    def record(
+        self, seed: int, *, fs=1000.0, seconds=4.0, rms=5.0, band=(2.0, 40.0), noise=0.01, substeps=16
+    ) -> tuple[symsbl.Trajectory, symsbl.Trajectory]:
         """Accelerometers ``a1``, ``a2`` with ``noise`` times their spread, and the clean record of every state and
         acceleration, by classical RK4 at ``substeps`` per sample on the analytic force (written here, not
         symsbl's)."""

@@ -31,8 +31,19 @@ def run(argv, capsys):
 
 def test_identify_then_simulate(files, capsys):
     before = (files / "train.csv").read_bytes()
-    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
-                          "--json", str(files / "model.json")], capsys)
+    code, out, err = run(
+        [
+            "identify",
+            str(files / "train.csv"),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--json",
+            str(files / "model.json"),
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "x2' = " in out and "x1^3" in out
     assert (files / "train.csv").read_bytes() == before  # input never modified
@@ -44,8 +55,9 @@ def test_identify_then_simulate(files, capsys):
     assert cubic["coef"] == pytest.approx(-1e9, rel=0.01) and cubic["std"] > 0
     assert {"noise_std", "log_evidence", "rhs"} <= set(x2)
 
-    code, out, err = run(["simulate", str(files / "model.json"), str(files / "held.npz"),
-                          "--json", str(files / "errors.json")], capsys)
+    code, out, err = run(
+        ["simulate", str(files / "model.json"), str(files / "held.npz"), "--json", str(files / "errors.json")], capsys
+    )
     assert code == 0, err
     errors = json.loads((files / "errors.json").read_text())
     assert errors["status"] == "ok" and max(errors["nrmse"].values()) < 0.005
@@ -53,15 +65,40 @@ def test_identify_then_simulate(files, capsys):
 
 def test_simulate_with_a_predictive_band_and_a_figure(files, tmp_path, capsys):
     pytest.importorskip("matplotlib")
-    code, _, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
-                        "--library", "poly", "--json", str(tmp_path / "model.json")], capsys)
+    code, _, err = run(
+        [
+            "identify",
+            str(files / "train.csv"),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--library",
+            "poly",
+            "--json",
+            str(tmp_path / "model.json"),
+        ],
+        capsys,
+    )
     assert code == 0, err
     system = systems.duffing()
     held = simulate(system, time_grid(0.5, 32768), inputs=Multisine(rms=60, f_min=2, f_max=30, seed=4))
     write_trajectory(held.with_noise(0.004, seed=9), tmp_path / "held.npz")
     png, out_json = tmp_path / "figure2.png", tmp_path / "errors.json"
-    code, out, err = run(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--band", "10",
-                          "--json", str(out_json), "--plot", str(png)], capsys)
+    code, out, err = run(
+        [
+            "simulate",
+            str(tmp_path / "model.json"),
+            str(tmp_path / "held.npz"),
+            "--band",
+            "10",
+            "--json",
+            str(out_json),
+            "--plot",
+            str(png),
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "% of samples inside the 3-sigma predictive band" in out and f"figure written to {png}" in out
     doc = json.loads(out_json.read_text())
@@ -76,8 +113,23 @@ def test_simulate_with_a_predictive_band_and_a_figure(files, tmp_path, capsys):
 
 
 def test_poly_library_and_derivative_option(files, capsys):
-    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
-                          "--library", "poly", "--degree", "3", "--derivative", "central"], capsys)
+    code, out, err = run(
+        [
+            "identify",
+            str(files / "train.csv"),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--library",
+            "poly",
+            "--degree",
+            "3",
+            "--derivative",
+            "central",
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "x1^3" in out
 
@@ -89,8 +141,9 @@ def test_library_file(files, capsys, tmp_path):
         "x1, x2, F = symsbl.symbols('x1 x2 F')\n"
         "library = symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])\n"
     )
-    code, out, err = run(["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F",
-                          "--library", str(lib)], capsys)
+    code, out, err = run(
+        ["identify", str(files / "train.csv"), "--states", "x1,x2", "--inputs", "F", "--library", str(lib)], capsys
+    )
     assert code == 0, err
     assert "x1^3" in out
 
@@ -99,24 +152,44 @@ def test_library_file(files, capsys, tmp_path):
     "make, argv, message",
     [
         (None, ["--states", "x1,q"], r"q"),
-        (None, ["--states", "x1,x2", "--library", "LIBFILE"],
-         r"nolib\.py': expected a file defining `library`, a symsbl Library .*, received no `library`$"),
-        (None, ["--states", "x1,x2", "--library", "spline"],
-         r"--library: expected 'paper', 'poly' or an existing Python file \(\.py\) defining the library, received "
-         r"'spline'$"),
+        (
+            None,
+            ["--states", "x1,x2", "--library", "LIBFILE"],
+            r"nolib\.py': expected a file defining `library`, a symsbl Library .*, received no `library`$",
+        ),
+        (
+            None,
+            ["--states", "x1,x2", "--library", "spline"],
+            r"--library: expected 'paper', 'poly' or an existing Python file \(\.py\) defining the library, received "
+            r"'spline'$",
+        ),
         ("nan", ["--states", "x1,x2", "--inputs", "F"], r"x2.*(NaN|non-finite|not finite)"),
         ("jitter", ["--states", "x1,x2", "--inputs", "F"], r"(uniform|monoton)"),
-        ("flat", ["--states", "x1,x2", "--inputs", "F"], r"state 'x2': expected a column that varies, received a "
-                                                         r"constant 3; remove it from the states"),
-        ("short", ["--states", "x1,x2", "--inputs", "F"], r"rows: expected more regression rows than candidate terms "
-                                                          r"\(34\), received \d+ rows from 1 record\(s\) with "
-                                                          r"WeakForm"),
-        (None, ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
-         r"data: expected an input exciting at least 8 frequencies \(the skeleton and the hidden law need a "
-         r"broadband input\), received 1 excited frequencies; use a multisine"),
-        (None, ["--states", "q,x2", "--inputs", "F", "--kinematics", "q:x2"],
-         r"--states q: expected a column of DATA \(the position of each --kinematics pair is measured; its velocity "
-         r"and latent states may be absent\), received no such column$"),
+        (
+            "flat",
+            ["--states", "x1,x2", "--inputs", "F"],
+            r"state 'x2': expected a column that varies, received a "
+            r"constant 3; remove it from the states",
+        ),
+        (
+            "short",
+            ["--states", "x1,x2", "--inputs", "F"],
+            r"rows: expected more regression rows than candidate terms "
+            r"\(34\), received \d+ rows from 1 record\(s\) with "
+            r"WeakForm",
+        ),
+        (
+            None,
+            ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2"],
+            r"data: expected an input exciting at least 8 frequencies \(the skeleton and the hidden law need a "
+            r"broadband input\), received 1 excited frequencies; use a multisine",
+        ),
+        (
+            None,
+            ["--states", "q,x2", "--inputs", "F", "--kinematics", "q:x2"],
+            r"--states q: expected a column of DATA \(the position of each --kinematics pair is measured; its velocity "
+            r"and latent states may be absent\), received no such column$",
+        ),
     ],
 )
 def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
@@ -149,8 +222,9 @@ def test_errors_are_clear(files, capsys, tmp_path, make, argv, message):
 
 def test_missing_file(capsys):
     code, _, err = run(["simulate", "nope.json", "nope.csv"], capsys)
-    assert code == 2 and err == ("symsbl simulate: error: model file 'nope.json': expected an existing JSON file, "
-                                 "received no such file\n")
+    assert code == 2 and err == (
+        "symsbl simulate: error: model file 'nope.json': expected an existing JSON file, received no such file\n"
+    )
 
 
 def test_module_entry_point_help():
@@ -162,11 +236,12 @@ def test_module_entry_point_help():
 def test_demo_quick(capsys, tmp_path):
     code, out, err = run(["demo", "--quick", "--plots", str(tmp_path)], capsys)
     assert code == 0, err
-    table = out[out.index("system "):]
+    table = out[out.index("system ") :]
     assert table.count("exact") == 5 and "WRONG" not in table
     for row in table.splitlines()[1:6]:  # equation error -> output error, per column
-        (ee, oe), (ee_all, oe_all), (ee_held, oe_held) = [tuple(map(float, cell.split(" -> ")))
-                                                          for cell in re.findall(r"[\d.]+ -> [\d.]+", row)]
+        (ee, oe), (ee_all, oe_all), (ee_held, oe_held) = [
+            tuple(map(float, cell.split(" -> "))) for cell in re.findall(r"[\d.]+ -> [\d.]+", row)
+        ]
         assert oe < 0.05 and oe < ee and oe_all < ee_all, row  # percent
         assert oe_held < 0.41 and oe_held <= ee_held, row  # the noise floor is 0.4 %
     written = sorted(p.name for p in tmp_path.glob("*.png"))

@@ -46,20 +46,44 @@ def test_column_missing_lists_available():
 @pytest.mark.parametrize(
     "t, states, match",
     [
-        ([0, 1, 2, 2, 4], np.zeros(5), exactly('time: expected strictly increasing values, received t = 2.0 at row 3 '
-                                               'after t = 2.0; sort the rows or pass --fs/fs for a rounded time '
-                                               'column')),
-        ([0, 1, 2, 3.5, 4], np.zeros(5), exactly('time: expected uniform sampling (steps within 0.001 of the mean step '
-                                                 '1.0), received a step of 1.5 before row 3 (relative deviation 0.5); '
-                                                 'resample onto a uniform grid, or pass --fs/fs when the time column '
-                                                 'is only rounded')),
-        ([0, 1, 2, 3, 4], [0, 0, 0, 0, np.nan], exactly("column 'x': expected finite values, received nan at row 4 (1 "
-                                                        "non-finite in total); remove or repair those rows")),
-        ([0, 1, np.inf, 3, 4], np.zeros(5), exactly("column 'time': expected finite values, received inf at row 2 (1 "
-                                                    "non-finite in total); remove or repair those rows")),
-        ([0, 1, 2, 3], np.zeros(5), exactly('states: expected one row per time sample (4), received 5 rows')),
-        ([0.0], np.zeros(1), exactly('trajectory: expected at least 2 samples, received 1')),
-        (np.zeros((2, 2)), np.zeros(2), exactly('time: expected shape (n_samples,), received shape (2, 2)')),
+        (
+            [0, 1, 2, 2, 4],
+            np.zeros(5),
+            exactly(
+                "time: expected strictly increasing values, received t = 2.0 at row 3 "
+                "after t = 2.0; sort the rows or pass --fs/fs for a rounded time "
+                "column"
+            ),
+        ),
+        (
+            [0, 1, 2, 3.5, 4],
+            np.zeros(5),
+            exactly(
+                "time: expected uniform sampling (steps within 0.001 of the mean step "
+                "1.0), received a step of 1.5 before row 3 (relative deviation 0.5); "
+                "resample onto a uniform grid, or pass --fs/fs when the time column "
+                "is only rounded"
+            ),
+        ),
+        (
+            [0, 1, 2, 3, 4],
+            [0, 0, 0, 0, np.nan],
+            exactly(
+                "column 'x': expected finite values, received nan at row 4 (1 "
+                "non-finite in total); remove or repair those rows"
+            ),
+        ),
+        (
+            [0, 1, np.inf, 3, 4],
+            np.zeros(5),
+            exactly(
+                "column 'time': expected finite values, received inf at row 2 (1 "
+                "non-finite in total); remove or repair those rows"
+            ),
+        ),
+        ([0, 1, 2, 3], np.zeros(5), exactly("states: expected one row per time sample (4), received 5 rows")),
+        ([0.0], np.zeros(1), exactly("trajectory: expected at least 2 samples, received 1")),
+        (np.zeros((2, 2)), np.zeros(2), exactly("time: expected shape (n_samples,), received shape (2, 2)")),
     ],
 )
 def test_validate_errors(t, states, match):
@@ -76,16 +100,47 @@ def test_validate_accepts_logger_jitter():
 @pytest.mark.parametrize(
     "states, names, inputs, input_names, match",
     [
-        (np.zeros((3, 2)), ("x",), None, (), exactly('states: expected shape (n_samples, 1), one column per name, '
-                                                     'received shape (3, 2)')),
-        (np.zeros((3, 2)), ("x", "x"), None, (), exactly("state names: expected distinct names, received ['x', 'x']; "
-                                                         "rename the repeated ['x']")),
-        (np.zeros(3), ("x",), np.zeros(3), ("x",), exactly("state and input names together: expected distinct names, "
-                                                           "received ['x', 'x']; rename the repeated ['x']")),
-        (np.zeros(3), ("t",), None, (), exactly("names: expected state and input names other than 't' (the time "
-                                                "column), received ['t']; rename that state or input")),
-        (np.zeros(3), ("x",), np.zeros((2, 1)), ("u",), exactly('inputs: expected one row per time sample (3), '
-                                                                'received 2 rows')),
+        (
+            np.zeros((3, 2)),
+            ("x",),
+            None,
+            (),
+            exactly("states: expected shape (n_samples, 1), one column per name, received shape (3, 2)"),
+        ),
+        (
+            np.zeros((3, 2)),
+            ("x", "x"),
+            None,
+            (),
+            exactly("state names: expected distinct names, received ['x', 'x']; rename the repeated ['x']"),
+        ),
+        (
+            np.zeros(3),
+            ("x",),
+            np.zeros(3),
+            ("x",),
+            exactly(
+                "state and input names together: expected distinct names, "
+                "received ['x', 'x']; rename the repeated ['x']"
+            ),
+        ),
+        (
+            np.zeros(3),
+            ("t",),
+            None,
+            (),
+            exactly(
+                "names: expected state and input names other than 't' (the time "
+                "column), received ['t']; rename that state or input"
+            ),
+        ),
+        (
+            np.zeros(3),
+            ("x",),
+            np.zeros((2, 1)),
+            ("u",),
+            exactly("inputs: expected one row per time sample (3), received 2 rows"),
+        ),
     ],
 )
 def test_validate_name_and_shape_errors(states, names, inputs, input_names, match):
@@ -117,7 +172,7 @@ def test_noise_channels():
     assert not np.array_equal(both.states, tr.states) and not np.array_equal(both.inputs, tr.inputs)
     with pytest.raises(DataError, match=exactly("channels: expected one of ['states', 'inputs', 'all'], received 'x'")):
         tr.with_noise(channels="x")
-    with pytest.raises(DataError, match=exactly('rel_std: expected a finite number >= 0.0, received -1')):
+    with pytest.raises(DataError, match=exactly("rel_std: expected a finite number >= 0.0, received -1")):
         tr.with_noise(rel_std=-1)
 
 
@@ -126,8 +181,13 @@ def test_round_trip_is_exact(tmp_path, ext):
     rng = np.random.default_rng(1)
     n = 300
     t = np.arange(n) / 32768.0
-    tr = Trajectory(t, rng.standard_normal((n, 3)) * 10.0 ** rng.integers(-9, 9, (n, 3)),
-                    rng.standard_normal((n, 1)), ("x1", "x2", "x3"), ("F",))
+    tr = Trajectory(
+        t,
+        rng.standard_normal((n, 3)) * 10.0 ** rng.integers(-9, 9, (n, 3)),
+        rng.standard_normal((n, 1)),
+        ("x1", "x2", "x3"),
+        ("F",),
+    )
     path = tmp_path / f"traj{ext}"
     write_trajectory(tr, path)
     back = read_trajectory(path, states=tr.state_names, inputs=tr.input_names)
@@ -161,32 +221,46 @@ def test_time_from_sample_rate(tmp_path):
     np.savez(path, y=np.arange(5.0), u=np.ones(5))
     tr = read_trajectory(path, states=["y"], inputs=["u"], time=None, fs=750.0)
     np.testing.assert_array_equal(tr.t, np.arange(5) / 750.0)
-    with pytest.raises(DataError, match=exactly('fs: expected a positive sample rate in Hz when there is no time '
-                                                'column, received None')):
+    with pytest.raises(
+        DataError,
+        match=exactly("fs: expected a positive sample rate in Hz when there is no time column, received None"),
+    ):
         read_trajectory(path, states=["y"], time=None)
 
 
 def test_read_errors(tmp_path):
     csv = tmp_path / "d.csv"
     csv.write_text("t,x1,x2\n0,1,2\n1,1,2\n2,1,nan\n")
-    with pytest.raises(DataError, match=r"d\.csv: column 'x9': expected a column among \['t', 'x1', 'x2'\], received "
-                                        r"no such column; check "
-                                         r"--states/--inputs/--time against the header$"):
+    with pytest.raises(
+        DataError,
+        match=r"d\.csv: column 'x9': expected a column among \['t', 'x1', 'x2'\], received "
+        r"no such column; check "
+        r"--states/--inputs/--time against the header$",
+    ):
         read_trajectory(csv, states=["x9"])
-    with pytest.raises(DataError, match=r"d\.csv: column 'x2': expected finite values, received nan at row 2 \(1 "
-                                        r"non-finite in total\)"):
+    with pytest.raises(
+        DataError,
+        match=r"d\.csv: column 'x2': expected finite values, received nan at row 2 \(1 "
+        r"non-finite in total\)",
+    ):
         read_trajectory(csv, states=["x1", "x2"])
     with pytest.raises(DataError, match=exactly("states: expected at least one column name, received an empty list")):
         read_trajectory(csv, states=[])
     bad = tmp_path / "bad.csv"
     bad.write_text("t,x\n0,1\n1,oops\n")
-    with pytest.raises(DataError, match=r"bad\.csv: column 'x' at line 3: expected a number, received 'oops'; repair "
-                                        r"or remove the row$"):
+    with pytest.raises(
+        DataError,
+        match=r"bad\.csv: column 'x' at line 3: expected a number, received 'oops'; repair "
+        r"or remove the row$",
+    ):
         read_trajectory(bad, states=["x"])
     ragged = tmp_path / "ragged.csv"
     ragged.write_text("t,x\n0,1\n1\n")
-    with pytest.raises(DataError, match=r"ragged\.csv: line 3: expected 2 fields, one per header column, received 1 "
-                                        r"field; every row needs"):
+    with pytest.raises(
+        DataError,
+        match=r"ragged\.csv: line 3: expected 2 fields, one per header column, received 1 "
+        r"field; every row needs",
+    ):
         read_trajectory(ragged, states=["x"])
     empty = tmp_path / "empty.csv"
     empty.write_text("")
@@ -194,21 +268,31 @@ def test_read_errors(tmp_path):
         read_trajectory(empty, states=["x"])
     npz = tmp_path / "d.npz"
     np.savez(npz, t=np.arange(4.0), x=np.zeros(4), u=np.zeros(3), m=np.zeros((4, 2)))
-    with pytest.raises(DataError,
-                       match=r"d\.npz: expected columns of one length, received lengths \{'x': 4, 'u': 3\}$"):
+    with pytest.raises(
+        DataError, match=r"d\.npz: expected columns of one length, received lengths \{'x': 4, 'u': 3\}$"
+    ):
         read_trajectory(npz, states=["x"], inputs=["u"])
-    with pytest.raises(DataError, match=r"d\.npz: column 'm': expected a real numeric vector \(N, 1xN or Nx1\), "
-                                        r"received shape \(4, 2\) and dtype float64$"):
+    with pytest.raises(
+        DataError,
+        match=r"d\.npz: column 'm': expected a real numeric vector \(N, 1xN or Nx1\), "
+        r"received shape \(4, 2\) and dtype float64$",
+    ):
         read_trajectory(npz, states=["m"])
     np.savez(tmp_path / "short.npz", t=np.arange(3.0), x=np.zeros(4))
-    with pytest.raises(DataError, match=r"short\.npz: time column 't': expected 4 samples like the data columns, "
-                                        r"received 3 samples$"):
+    with pytest.raises(
+        DataError,
+        match=r"short\.npz: time column 't': expected 4 samples like the data columns, "
+        r"received 3 samples$",
+    ):
         read_trajectory(tmp_path / "short.npz", states=["x"])
     np.savez(tmp_path / "one.npz", t=np.zeros(1), x=np.zeros(1))
     with pytest.raises(DataError, match=r"one\.npz: trajectory: expected at least 2 samples, received 1$"):
         read_trajectory(tmp_path / "one.npz", states=["x"])
-    with pytest.raises(DataError, match=r"d\.txt: expected a file ending in one of \['\.csv', '\.mat', '\.npz'\], "
-                                        r"received the extension '\.txt'$"):
+    with pytest.raises(
+        DataError,
+        match=r"d\.txt: expected a file ending in one of \['\.csv', '\.mat', '\.npz'\], "
+        r"received the extension '\.txt'$",
+    ):
         read_trajectory(tmp_path / "d.txt", states=["x"])
     with pytest.raises(DataError, match=r"missing\.csv: expected an existing data file, received no such file$"):
         read_trajectory(tmp_path / "missing.csv", states=["x"])
@@ -216,13 +300,20 @@ def test_read_errors(tmp_path):
 
 def test_write_errors(tmp_path):
     tr = Trajectory(np.arange(3.0), np.zeros((3, 1)), None, ("x dot",))
-    with pytest.raises(DataError, match=exactly("column name: expected a MATLAB variable name (a letter, then letters, "
-                                                "digits or underscores, at most 63 characters), received 'x dot'; "
-                                                "rename it or write .csv/.npz")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "column name: expected a MATLAB variable name (a letter, then letters, "
+            "digits or underscores, at most 63 characters), received 'x dot'; "
+            "rename it or write .csv/.npz"
+        ),
+    ):
         write_trajectory(tr, tmp_path / "d.mat")
     tr = Trajectory(np.arange(3.0), np.zeros((3, 1)), None, ("a,b",))
-    with pytest.raises(DataError, match=exactly("column name: expected a name without commas, quotes or newlines for "
-                                                "CSV, received 'a,b'")):
+    with pytest.raises(
+        DataError,
+        match=exactly("column name: expected a name without commas, quotes or newlines for CSV, received 'a,b'"),
+    ):
         write_trajectory(tr, tmp_path / "d.csv")
 
 
@@ -248,8 +339,10 @@ def test_noise_levels_needs_a_trajectory_of_four_samples():
     from symsbl import noise_levels
 
     short = Trajectory(np.arange(3.0), np.zeros((3, 1)) + np.arange(3.0)[:, None], state_names=("x",))
-    with pytest.raises(DataError, match=exactly("traj: expected a Trajectory of at least 4 samples to estimate its "
-                                                "noise, received 3 samples")):
+    with pytest.raises(
+        DataError,
+        match=exactly("traj: expected a Trajectory of at least 4 samples to estimate its noise, received 3 samples"),
+    ):
         noise_levels(short)
     with pytest.raises(DataError, match="received ndarray"):
         noise_levels(np.zeros((10, 2)))

@@ -32,8 +32,12 @@ def _pointwise_error(strategy, n):
 
 @pytest.mark.parametrize(
     "strategy",
-    [PointDifference(), CentralDifference(), SavitzkyGolay(window=7, polyorder=3),
-     SavitzkyGolay(window=9, polyorder=4)],
+    [
+        PointDifference(),
+        CentralDifference(),
+        SavitzkyGolay(window=7, polyorder=3),
+        SavitzkyGolay(window=9, polyorder=4),
+    ],
 )
 def test_pointwise_order(strategy):
     ns = np.array([400, 800, 1600])
@@ -131,19 +135,29 @@ def test_whitened_rows_of_white_noise_are_white():
 
 def test_registry_and_errors():
     assert isinstance(get_differentiator("central"), CentralDifference)
-    with pytest.raises(ValueError, match=exactly("derivative: expected one of ['weak', 'central', 'point', 'savgol'], "
-                                                 "received 'spline'")):
+    with pytest.raises(
+        ValueError,
+        match=exactly("derivative: expected one of ['weak', 'central', 'point', 'savgol'], received 'spline'"),
+    ):
         get_differentiator("spline")
-    with pytest.raises(DataError, match=exactly('X: expected at least 33 samples for this differentiator, received 10; '
-                                                'use a longer record or a shorter window')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "X: expected at least 33 samples for this differentiator, received 10; "
+            "use a longer record or a shorter window"
+        ),
+    ):
         WeakForm(window=32).targets(np.arange(10.0), np.zeros(10))
-    with pytest.raises(ParameterError, match=exactly("SavitzkyGolay.window: expected an odd number greater than "
-                                                     "polyorder=3, received 8")):
+    with pytest.raises(
+        ParameterError,
+        match=exactly("SavitzkyGolay.window: expected an odd number greater than polyorder=3, received 8"),
+    ):
         SavitzkyGolay(window=8).targets(np.arange(10.0), np.zeros(10))
 
 
-@pytest.mark.parametrize("strategy", [PointDifference(), CentralDifference(), WeakForm(window=16),
-                                      WeakForm(window=16, overlap=2)])
+@pytest.mark.parametrize(
+    "strategy", [PointDifference(), CentralDifference(), WeakForm(window=16), WeakForm(window=16, overlap=2)]
+)
 def test_reduce_in_blocks_equals_reduce_at_once(strategy):
     rng = np.random.default_rng(2)
     D = rng.standard_normal((1000, 3))
@@ -153,7 +167,7 @@ def test_reduce_in_blocks_equals_reduce_at_once(strategy):
     for r0 in range(0, n, 7):
         r1 = min(r0 + 7, n)
         s0, s1 = strategy.sample_span(r0, r1)
-        blocks.append(strategy.reduce(D[s0:s1])[-(r1 - r0):])
+        blocks.append(strategy.reduce(D[s0:s1])[-(r1 - r0) :])
     # the same sums, but BLAS may order them differently for a block's shape than for the
     # whole record's (seen on one CPU: differences of one unit in the last place)
     np.testing.assert_allclose(np.vstack(blocks), whole[:n], rtol=1e-13, atol=1e-14)
@@ -168,6 +182,8 @@ def test_weak_form_automatic_window_follows_the_bandwidth():
     # at most n / (2 n_terms) samples per window, so there are enough rows for the terms
     assert WeakForm().resolve(t, x, n_terms=200).window == (len(t) - 1) // 400
     assert WeakForm(window=16).resolve(t, x) == WeakForm(window=16)
-    with pytest.raises(ParameterError, match=exactly("WeakForm.window: expected a window resolved from data (call "
-                                                     "resolve(t, X)), received None")):
+    with pytest.raises(
+        ParameterError,
+        match=exactly("WeakForm.window: expected a window resolved from data (call resolve(t, X)), received None"),
+    ):
         WeakForm().targets(t, x)

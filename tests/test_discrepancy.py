@@ -54,8 +54,10 @@ def oscillator(force) -> OdeSystem:
 def records(system, heldout_input, seed, channels="states"):
     train = simulate(system, time_grid(3.0, FS), inputs=Sine(100.0, 10.0), method="rk4")
     held = simulate(system, time_grid(1.5, FS), inputs=heldout_input, method="rk4")
-    return (train.with_noise(NOISE, seed=seed, channels=channels),
-            held.with_noise(NOISE, seed=seed + 1000, channels=channels))
+    return (
+        train.with_noise(NOISE, seed=seed, channels=channels),
+        held.with_noise(NOISE, seed=seed + 1000, channels=channels),
+    )
 
 
 # effect -> (hidden force, true coefficient in x2', held-out forcing)
@@ -104,9 +106,13 @@ def test_nothing_missing_is_reported_in_at_least_95_percent_of_seeds(case):
     seeds = range(3)  # 200 seeds per case in bench/bench_discrepancy.py
     alarms = []
     for seed in seeds:
-        report = discrepancy(train0.with_noise(NOISE, seed=seed, channels=channels), base,
-                             heldout=held0.with_noise(NOISE, seed=seed + 1000, channels=channels),
-                             seed=seed, rule=symsbl.DecisionRule(n_bootstrap=0))
+        report = discrepancy(
+            train0.with_noise(NOISE, seed=seed, channels=channels),
+            base,
+            heldout=held0.with_noise(NOISE, seed=seed + 1000, channels=channels),
+            seed=seed,
+            rule=symsbl.DecisionRule(n_bootstrap=0),
+        )
         if report.added or report.steps[0].decision != "nothing missing":
             alarms.append((seed, report.verdict))
     assert not alarms, alarms
@@ -134,11 +140,23 @@ def test_a_gap_between_grid_points_is_refined_to_its_value_and_nothing_makes_up_
     x, v, F = (ca.SX.sym(n) for n in ("x1", "x2", "F"))
     rhs = (v, (F - 4.0 * v - 3e4 * x - 9e3 * ca.sign(x) * ca.fmax(ca.fabs(x) - 0.004, 0)) / 2.5)
     system = OdeSystem((x, v), (F,), rhs, (), (), "gap")
-    out = [simulate(system, time_grid(dur, 1000.0), inputs=symsbl.Multisine(rms=rms, f_min=2.0, f_max=40.0, seed=s),
-                    method="rk4").with_noise(0.01, seed=s + 1) for dur, rms, s in ((6.0, 80.0, 3), (3.0, 40.0, 9))]
+    out = [
+        simulate(
+            system,
+            time_grid(dur, 1000.0),
+            inputs=symsbl.Multisine(rms=rms, f_min=2.0, f_max=40.0, seed=s),
+            method="rk4",
+        ).with_noise(0.01, seed=s + 1)
+        for dur, rms, s in ((6.0, 80.0, 3), (3.0, 40.0, 9))
+    ]
     # the output-error evidence named: by default, the base model's error here reads as feedback (a limitation)
-    report = discrepancy(out[0], "x1: x2; x2: F, x1, x2", heldout=out[1], rule=symsbl.DecisionRule(n_bootstrap=0),
-                         evidence="output-error")
+    report = discrepancy(
+        out[0],
+        "x1: x2; x2: F, x1, x2",
+        heldout=out[1],
+        rule=symsbl.DecisionRule(n_bootstrap=0),
+        evidence="output-error",
+    )
     assert [a.effect for a in report.added] == ["clearance"], report.verdict
     assert report.added[0].shape == pytest.approx(0.004, rel=0.01)
     assert report.added[0].coef == pytest.approx(-9e3 / 2.5, rel=0.02)
@@ -161,9 +179,17 @@ def test_report_text_json_and_localisation():
     train, held = records(oscillator(force), held_input, seed=5)
     report = discrepancy(train, BASE, heldout=held, rule=symsbl.DecisionRule(n_bootstrap=0))
     text = str(report)
-    for part in ("model before:", "where it disagrees:", "candidates (output-error evidence",
-                 "decision: added coulomb_friction", "Bayes factor", "cross-validated predictive log likelihood",
-                 "model after:", "held-out simulation error:", "Fc = "):
+    for part in (
+        "model before:",
+        "where it disagrees:",
+        "candidates (output-error evidence",
+        "decision: added coulomb_friction",
+        "Bayes factor",
+        "cross-validated predictive log likelihood",
+        "model after:",
+        "held-out simulation error:",
+        "Fc = ",
+    ):
         assert part in text
     where = report.steps[0].disagreement
     assert abs(where.jump_z) > 5 and where.jump < 0  # friction: a step down across v = 0
@@ -211,8 +237,10 @@ def test_emps_slice_names_coulomb_friction_and_the_published_parameters():
     assert report.steps[0].error_after < 0.5 * report.steps[0].error_heldout
 
 
-@pytest.mark.skipif(not (SHARED / "DATA_EMPS.mat").exists(),
-                    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)")
+@pytest.mark.skipif(
+    not (SHARED / "DATA_EMPS.mat").exists(),
+    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)",
+)
 def test_emps_full_record_with_the_pulses_record_held_out():
     from scipy.io import loadmat
 
@@ -220,8 +248,9 @@ def test_emps_full_record_with_the_pulses_record_held_out():
         m = loadmat(SHARED / name)
         return emps_record(m["t"].ravel(), m["qm"].ravel(), float(m["gtau"].ravel()[0]) * m["vir"].ravel())
 
-    report = discrepancy(load("DATA_EMPS.mat"), "q: v; v: tau, v, 1", heldout=load("DATA_EMPS_PULSES.mat"),
-                         error="equation")
+    report = discrepancy(
+        load("DATA_EMPS.mat"), "q: v; v: tau, v, 1", heldout=load("DATA_EMPS_PULSES.mat"), error="equation"
+    )
     assert report.added[0].effect == "coulomb_friction"
     found = emps_parameters(report.final)
     for name in ("M", "Fv", "Fc"):
@@ -238,8 +267,24 @@ def test_cli_discrepancy_writes_the_json_contract_and_the_figure(tmp_path, capsy
     write_trajectory(train, tmp_path / "train.npz")
     write_trajectory(held, tmp_path / "held.csv")
     out, png = tmp_path / "report.json", tmp_path / "report.png"
-    code = main(["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
-                 "--base", BASE, "--held-out", str(tmp_path / "held.csv"), "--json", str(out), "--plot", str(png)])
+    code = main(
+        [
+            "discrepancy",
+            str(tmp_path / "train.npz"),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--base",
+            BASE,
+            "--held-out",
+            str(tmp_path / "held.csv"),
+            "--json",
+            str(out),
+            "--plot",
+            str(png),
+        ]
+    )
     printed = capsys.readouterr().out
     assert code == 0
     assert "decision: added coulomb_friction" in printed and "model after:" in printed
@@ -256,24 +301,38 @@ def test_cli_discrepancy_writes_the_json_contract_and_the_figure(tmp_path, capsy
 def test_cli_discrepancy_reports_a_bad_base(tmp_path, capsys):
     train, _ = records(systems.linear(), Sine(10.0, 10.0), seed=0)
     write_trajectory(train.slice(0, 4000), tmp_path / "train.npz")
-    code = main(["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
-                 "--base", "x1: x2; x3: F"])
+    code = main(
+        ["discrepancy", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x3: F"]
+    )
     assert code == 2
     assert "--base: expected equations of the states ['x1', 'x2'], received 'x3'" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------- errors
-@pytest.mark.parametrize("text, message", [
-    ("x1 x2; x2: F", r"expected 'state: term, term'"),
-    ("x1: x2; x3: F", exactly("--base: expected equations of the states ['x1', 'x2'], received 'x3'")),
-    ("x1: x2; x2: F, y", exactly("--base (state 'x2'): expected a variable among ['F', 'x1', 'x2'] or a constant (pi, "
-                                 "E) in 'y', received 'y' at position 0")),
-    ("x1: x2; x2: F, x2 +* 1", exactly("--base (state 'x2'): expected a number, a variable name, a function call or "
-                                       "'(' in 'x2 +* 1', received '*' at position 4")),
-    ("x1: x2", exactly("--base: expected terms for every state, received none for ['x2']")),
-    ("x1: x2; x1: x2; x2: F", exactly("--base: expected one 'state: terms' part per state, received two for 'x1'")),
-    ("x1: x2; x2:", r"expected 'state: term, term'"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("x1 x2; x2: F", r"expected 'state: term, term'"),
+        ("x1: x2; x3: F", exactly("--base: expected equations of the states ['x1', 'x2'], received 'x3'")),
+        (
+            "x1: x2; x2: F, y",
+            exactly(
+                "--base (state 'x2'): expected a variable among ['F', 'x1', 'x2'] or a constant (pi, "
+                "E) in 'y', received 'y' at position 0"
+            ),
+        ),
+        (
+            "x1: x2; x2: F, x2 +* 1",
+            exactly(
+                "--base (state 'x2'): expected a number, a variable name, a function call or "
+                "'(' in 'x2 +* 1', received '*' at position 4"
+            ),
+        ),
+        ("x1: x2", exactly("--base: expected terms for every state, received none for ['x2']")),
+        ("x1: x2; x1: x2; x2: F", exactly("--base: expected one 'state: terms' part per state, received two for 'x1'")),
+        ("x1: x2; x2:", r"expected 'state: term, term'"),
+    ],
+)
 def test_parse_base_errors_name_the_problem(text, message):
     with pytest.raises(LibraryError, match=message):
         parse_base(text, ("x1", "x2"), ("F",))
@@ -290,55 +349,92 @@ def test_discrepancy_argument_errors():
     train = train.slice(0, 8000)
     with pytest.raises(DataError, match=exactly("error: expected one of 'simulation', 'equation', received 'output'")):
         discrepancy(train, BASE, error="output")
-    with pytest.raises(DataError, match=exactly("error: expected 'simulation' with evidence='output-error' (the "
-                                                "output-error search scores terms the equation-error measure cannot "
-                                                "evaluate), received 'equation'; use evidence='equation-error' for a "
-                                                "plant that cannot run open loop")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "error: expected 'simulation' with evidence='output-error' (the "
+            "output-error search scores terms the equation-error measure cannot "
+            "evaluate), received 'equation'; use evidence='equation-error' for a "
+            "plant that cannot run open loop"
+        ),
+    ):
         discrepancy(train, BASE, error="equation", evidence="output-error")
-    with pytest.raises(DataError, match=exactly("evidence: expected one of 'output-error', 'equation-error', "
-                                                "received 'both'")):
+    with pytest.raises(
+        DataError, match=exactly("evidence: expected one of 'output-error', 'equation-error', received 'both'")
+    ):
         discrepancy(train, BASE, evidence="both")
-    with pytest.raises(DataError, match=exactly('data: expected a Trajectory, received ndarray')):
+    with pytest.raises(DataError, match=exactly("data: expected a Trajectory, received ndarray")):
         discrepancy(train.states, BASE)
     other = Trajectory(held.t, held.states, held.inputs, ("y1", "y2"), ("F",))
-    with pytest.raises(DataError, match=exactly("heldout: expected the training record's states ['x1', 'x2'] and "
-                                                "inputs ['F'], received ['y1', 'y2'] and ['F']")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "heldout: expected the training record's states ['x1', 'x2'] and "
+            "inputs ['F'], received ['y1', 'y2'] and ['F']"
+        ),
+    ):
         discrepancy(train, BASE, heldout=other)
-    with pytest.raises(DataError, match=exactly("velocity: expected a base equation 'x: v' naming the velocity v, "
-                                                "another state, received the base {'x1': ['x2', 'x1'], 'x2': ['F', "
-                                                "'x1', 'x2']}; pass velocity= (and displacement=) explicitly")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "velocity: expected a base equation 'x: v' naming the velocity v, "
+            "another state, received the base {'x1': ['x2', 'x1'], 'x2': ['F', "
+            "'x1', 'x2']}; pass velocity= (and displacement=) explicitly"
+        ),
+    ):
         discrepancy(train, "x1: x2, x1; x2: F, x1, x2")
     with pytest.raises(DataError, match=exactly("velocity: expected one of the states ['x1', 'x2'], received 'v'")):
         discrepancy(train, BASE, velocity="v")
-    with pytest.raises(LibraryError, match=exactly("base: state 'x2': expected distinct terms (up to a constant "
-                                                   "factor), received ['F', 'x1', '2*x1']; list each term once")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "base: state 'x2': expected distinct terms (up to a constant "
+            "factor), received ['F', 'x1', '2*x1']; list each term once"
+        ),
+    ):
         discrepancy(train, "x1: x2; x2: F, x1, 2*x1")
-    with pytest.raises(LibraryError, match=exactly("base: expected terms for exactly the states ['x1', 'x2'], "
-                                                   "received ['x1']")):
+    with pytest.raises(
+        LibraryError, match=exactly("base: expected terms for exactly the states ['x1', 'x2'], received ['x1']")
+    ):
         discrepancy(train, {"x1": ()})
 
 
 def test_catalogue_errors_and_lookup():
     assert get_effect("coulomb_friction").sign == -1
-    with pytest.raises(LibraryError, match=exactly("effect: expected one of ['coulomb_friction', 'quadratic_damping', "
-                                                   "'velocity_squared', 'cubic_damping', 'cubic_stiffness', "
-                                                   "'quadratic_stiffness', 'clearance'], received 'coulomb'; did you "
-                                                   "mean 'coulomb_friction'?")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "effect: expected one of ['coulomb_friction', 'quadratic_damping', "
+            "'velocity_squared', 'cubic_damping', 'cubic_stiffness', "
+            "'quadratic_stiffness', 'clearance'], received 'coulomb'; did you "
+            "mean 'coulomb_friction'?"
+        ),
+    ):
         get_effect("coulomb")
-    with pytest.raises(LibraryError, match=exactly("effects: expected distinct effect names, received "
-                                                   "['cubic_stiffness'] more than once; rename the new effect")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "effects: expected distinct effect names, received "
+            "['cubic_stiffness'] more than once; rename the new effect"
+        ),
+    ):
         catalogue([Effect("cubic_stiffness", "again", "stiffness", lambda x, v: x**3)])
-    with pytest.raises(LibraryError, match=exactly('extra: expected Effect instances, received str')):
+    with pytest.raises(LibraryError, match=exactly("extra: expected Effect instances, received str")):
         catalogue(["x**3"])
     assert "clearance" not in [e.name for e in catalogue(exclude=["clearance"])]
     x, v = ca.SX.sym("x"), ca.SX.sym("v")
-    with pytest.raises(LibraryError, match=exactly("effect 'bad': terms: expected CasADi SX expressions of the "
-                                                   "displacement and velocity symbols, received str")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "effect 'bad': terms: expected CasADi SX expressions of the displacement and velocity symbols, received str"
+        ),
+    ):
         Effect("bad", "", "", lambda x, v: "x").variants(x, v)
     with pytest.raises(LibraryError, match=exactly("effect 'bad': sign: expected -1 or 0, received 1")):
         Effect("bad", "", "", lambda x, v: x, sign=1).variants(x, v)
-    with pytest.raises(DataError, match=exactly('cutoff: expected a frequency in (0, 500) Hz (the Nyquist frequency), '
-                                                'received 600.0')):
+    with pytest.raises(
+        DataError, match=exactly("cutoff: expected a frequency in (0, 500) Hz (the Nyquist frequency), received 600.0")
+    ):
         position_record(np.arange(10) * 1e-3, np.zeros(10), np.zeros(10), cutoff=600.0)
     assert len(CATALOGUE) >= 7
 
@@ -346,15 +442,21 @@ def test_catalogue_errors_and_lookup():
 def test_equation_error_evidence_keeps_its_ambiguous_and_held_out_rules():
     force, _, held_input = HIDDEN["coulomb_friction"]
     train, held = records(oscillator(force), held_input, seed=2)
-    ambiguous = discrepancy(train, BASE, heldout=held, evidence="equation-error",
-                            rule=symsbl.DecisionRule(n_bootstrap=0, margin_nats=1e6))
+    ambiguous = discrepancy(
+        train, BASE, heldout=held, evidence="equation-error", rule=symsbl.DecisionRule(n_bootstrap=0, margin_nats=1e6)
+    )
     (step,) = ambiguous.steps
     runner = next(c for c in step.scores[1:] if c.admissible)
     assert step.decision == "ambiguous" and not ambiguous.added and step.evidence == "equation-error"
     assert ambiguous.verdict.startswith(f"ambiguous between coulomb_friction and {runner.effect}")
     same_level = records(oscillator(force), Sine(100.0, 10.0), seed=2)[1]
-    unconfirmed = discrepancy(train, BASE, heldout=same_level, evidence="equation-error",
-                              rule=symsbl.DecisionRule(n_bootstrap=0, min_improvement=0.9))
+    unconfirmed = discrepancy(
+        train,
+        BASE,
+        heldout=same_level,
+        evidence="equation-error",
+        rule=symsbl.DecisionRule(n_bootstrap=0, min_improvement=0.9),
+    )
     assert unconfirmed.steps[0].decision == "no held-out gain" and not unconfirmed.added
     assert "does not lower the held-out error enough" in unconfirmed.verdict
 
@@ -371,10 +473,18 @@ def light_oscillator(force) -> OdeSystem:
 
 def multisine_records(system, seed, noise=0.01, train_s=4.0):
     """A 2-60 Hz multisine of 20 N RMS for training, another at a quarter of the force held out."""
-    train = simulate(system, time_grid(train_s, FS_OE), inputs=symsbl.Multisine(rms=FRMS, f_min=2.0, f_max=60.0,
-                                                                                seed=1 + seed), method="rk4")
-    held = simulate(system, time_grid(2.0, FS_OE), inputs=symsbl.Multisine(rms=FRMS / 4, f_min=2.0, f_max=60.0,
-                                                                             seed=100 + seed), method="rk4")
+    train = simulate(
+        system,
+        time_grid(train_s, FS_OE),
+        inputs=symsbl.Multisine(rms=FRMS, f_min=2.0, f_max=60.0, seed=1 + seed),
+        method="rk4",
+    )
+    held = simulate(
+        system,
+        time_grid(2.0, FS_OE),
+        inputs=symsbl.Multisine(rms=FRMS / 4, f_min=2.0, f_max=60.0, seed=100 + seed),
+        method="rk4",
+    )
     return train, held, train.with_noise(noise, seed=seed), held.with_noise(noise, seed=seed + 1)
 
 
@@ -394,8 +504,9 @@ def test_coulomb_friction_of_half_a_percent_of_the_force_at_one_percent_noise():
     assert (report.added[0].coef, report.added[0].std) == (friction.coef, friction.std)
     # the final model keeps the integrator it was fitted with, and validation re-simulates with it
     fitted = report.final.metadata["refine"]
-    again = symsbl.validate_model(report.final, clean_held, method="rk4", substeps=fitted["substeps"],
-                                  interpolation=fitted["interpolation"])
+    again = symsbl.validate_model(
+        report.final, clean_held, method="rk4", substeps=fitted["substeps"], interpolation=fitted["interpolation"]
+    )
     assert again.nrmse == truth.nrmse
     assert report.steps[-1].decision == "nothing missing" and report.steps[-1].residual_ratio < 1.2
 
@@ -422,8 +533,12 @@ def chain(extra_on):
     m1, m2, k3 = 1.5, 0.8, 1.3e7
     f1 = k3 * x1**3 if extra_on == 1 else 0
     f2 = k3 * x2**3 if extra_on == 2 else 0
-    rhs = (v1, (F - 3 * v1 - 2e4 * x1 - 2 * (v1 - v2) - 1.2e4 * (x1 - x2) - f1) / m1, v2,
-           (-2 * (v2 - v1) - 1.2e4 * (x2 - x1) - f2) / m2)
+    rhs = (
+        v1,
+        (F - 3 * v1 - 2e4 * x1 - 2 * (v1 - v2) - 1.2e4 * (x1 - x2) - f1) / m1,
+        v2,
+        (-2 * (v2 - v1) - 1.2e4 * (x2 - x1) - f2) / m2,
+    )
     return OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "chain"), -k3 / (m1 if extra_on == 1 else m2)
 
 
@@ -434,9 +549,24 @@ def test_a_chain_is_searched_on_every_mass_and_through_the_command_line(tmp_path
     write_trajectory(train, tmp_path / "train.csv")
     write_trajectory(held, tmp_path / "held.csv")
     out = tmp_path / "report.json"
-    code = main(["discrepancy", str(tmp_path / "train.csv"), "--states", "x1,v1,x2,v2", "--inputs", "F",
-                 "--base", "x1: v1; v1: F, x1, v1, x2, v2; x2: v2; v2: x1, v1, x2, v2",
-                 "--kinematics", "x1:v1,x2:v2", "--held-out", str(tmp_path / "held.csv"), "--json", str(out)])
+    code = main(
+        [
+            "discrepancy",
+            str(tmp_path / "train.csv"),
+            "--states",
+            "x1,v1,x2,v2",
+            "--inputs",
+            "F",
+            "--base",
+            "x1: v1; v1: F, x1, v1, x2, v2; x2: v2; v2: x1, v1, x2, v2",
+            "--kinematics",
+            "x1:v1,x2:v2",
+            "--held-out",
+            str(tmp_path / "held.csv"),
+            "--json",
+            str(out),
+        ]
+    )
     assert code == 0, capsys.readouterr()
     doc = json.loads(out.read_text())
     (added,) = doc["added"]
@@ -461,8 +591,24 @@ def test_a_displacement_only_record_names_the_hidden_effect_through_the_command_
     write_trajectory(train.with_states(["x1"]), tmp_path / "train.csv")
     write_trajectory(held.with_states(["x1"]), tmp_path / "held.csv")
     out = tmp_path / "report.json"
-    code = main(["discrepancy", str(tmp_path / "train.csv"), "--states", "x1,x2", "--inputs", "F", "--base", BASE,
-                 "--kinematics", "x1:x2", "--held-out", str(tmp_path / "held.csv"), "--json", str(out)])
+    code = main(
+        [
+            "discrepancy",
+            str(tmp_path / "train.csv"),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--base",
+            BASE,
+            "--kinematics",
+            "x1:x2",
+            "--held-out",
+            str(tmp_path / "held.csv"),
+            "--json",
+            str(out),
+        ]
+    )
     assert code == 0, capsys.readouterr()
     doc = json.loads(out.read_text())
     assert [a["effect"] for a in doc["added"]] == ["cubic_stiffness"], doc["verdict"]
@@ -470,8 +616,14 @@ def test_a_displacement_only_record_names_the_hidden_effect_through_the_command_
     final = symsbl.IdentifiedModel.from_json(doc["final"])
     assert max(symsbl.validate_model(final, clean_held, method="rk4").nrmse.values()) < 0.01
     with pytest.raises(DataError, match="evidence: expected 'output-error' when a velocity is not measured"):
-        discrepancy(train.with_states(["x1"]), BASE, heldout=held.with_states(["x1"]), kinematics="x1:x2",
-                    evidence="equation-error", error="equation")
+        discrepancy(
+            train.with_states(["x1"]),
+            BASE,
+            heldout=held.with_states(["x1"]),
+            kinematics="x1:x2",
+            evidence="equation-error",
+            error="equation",
+        )
 
 
 def test_an_effect_between_two_masses_names_its_term_once():
@@ -482,8 +634,9 @@ def test_an_effect_between_two_masses_names_its_term_once():
     names = ("x1", "v1", "x2", "v2")
     symbols = {n: ca.SX.sym(n) for n in names}
     t = np.linspace(0.0, 1.0, 101)
-    record = Trajectory(t, np.column_stack([np.sin(3 * t), np.cos(3 * t), np.sin(5 * t), np.cos(5 * t)]),
-                        state_names=names)
+    record = Trajectory(
+        t, np.column_stack([np.sin(3 * t), np.cos(3 * t), np.sin(5 * t), np.cos(5 * t)]), state_names=names
+    )
     between = Pair("x1-x2", "v1-v2", ("v1", "v2"), symbols["x1"] - symbols["x2"], symbols["v1"] - symbols["v2"])
     (c,) = catalogue_candidates([get_effect("coulomb_friction")], [between], symbols, [record])
     assert [s for s, _ in c.additions] == ["v1", "v2"]
@@ -495,16 +648,22 @@ def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
     from scipy.signal import butter, sosfiltfilt
 
     x1, v1, x2, v2, F = (ca.SX.sym(n) for n in ("x1", "v1", "x2", "v2", "F"))
-    rhs = (v1, (F - 3 * v1 - 2e4 * x1 - 0.5 * (v1 - v2) - 1.2e3 * (x1 - x2)) / 1.5, v2,
-           (-0.5 * (v2 - v1) - 1.2e3 * (x2 - x1)) / 0.3)
-    _, _, train, held = multisine_records(OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "two modes"), seed=5,
-                                          train_s=3.0)
+    rhs = (
+        v1,
+        (F - 3 * v1 - 2e4 * x1 - 0.5 * (v1 - v2) - 1.2e3 * (x1 - x2)) / 1.5,
+        v2,
+        (-0.5 * (v2 - v1) - 1.2e3 * (x2 - x1)) / 0.3,
+    )
+    _, _, train, held = multisine_records(
+        OdeSystem((x1, v1, x2, v2), (F,), rhs, (), (), "two modes"), seed=5, train_s=3.0
+    )
 
     def first_mass(tr):  # the second mass is not measured, not in the model and not among the candidates
         return Trajectory(tr.t, tr.states[:, :2], tr.inputs, ("x1", "v1"), tr.input_names)
 
-    report = discrepancy(first_mass(train), "x1: v1; v1: F, x1, v1", heldout=first_mass(held),
-                         rule=symsbl.DecisionRule(n_bootstrap=0))
+    report = discrepancy(
+        first_mass(train), "x1: v1; v1: F, x1, v1", heldout=first_mass(held), rule=symsbl.DecisionRule(n_bootstrap=0)
+    )
     assert report.steps[-1].decision == "unexplained" and "follows the input" in report.verdict, report.verdict
     assert report.steps[-1].residual_ratio > 3
 
@@ -514,11 +673,17 @@ def test_a_hidden_mode_is_unexplained_and_coloured_noise_is_not():
 
     def coloured(tr):  # 1 % band-limited noise: the third-difference noise estimate sees much less
         e = sosfiltfilt(sos, rng.standard_normal(tr.states.shape), axis=0)
-        return Trajectory(tr.t, tr.states + 0.01 * tr.states.std(axis=0) * e / e.std(axis=0), tr.inputs,
-                          tr.state_names, tr.input_names)
+        return Trajectory(
+            tr.t,
+            tr.states + 0.01 * tr.states.std(axis=0) * e / e.std(axis=0),
+            tr.inputs,
+            tr.state_names,
+            tr.input_names,
+        )
 
-    report = discrepancy(coloured(clean_train), "x: v; v: F, x, v", heldout=coloured(clean_held),
-                         evidence="output-error")
+    report = discrepancy(
+        coloured(clean_train), "x: v; v: F, x, v", heldout=coloured(clean_held), evidence="output-error"
+    )
     (step,) = report.steps
     assert step.decision == "nothing missing" and step.residual_ratio > 10, step.verdict
     assert "correlated measurement noise" in step.verdict
@@ -530,8 +695,9 @@ def test_predictive_log_likelihood_of_the_truth_is_the_gaussian_closed_form():
 
     system = light_oscillator(lambda x, v: 0 * v)
     _, _, train, held = multisine_records(system, seed=6)
-    model = symsbl.refine(symsbl.identify(train, symsbl.polynomial(list(system.states), 1)
-                                          + symsbl.inputs(list(system.inputs))), [train])
+    model = symsbl.refine(
+        symsbl.identify(train, symsbl.polynomial(list(system.states), 1) + symsbl.inputs(list(system.inputs))), [train]
+    )
     sigma = np.array([noise_levels(held)[n] for n in held.state_names])
     ll = predictive_log_likelihood(model, held, held.state_names, Settings(), 1 / sigma**2)
     n = held.n_samples
@@ -571,14 +737,25 @@ def test_a_stand_in_is_removed_once_the_effect_it_stood_in_for_is_found():
     m, c, k, k3, fc = 0.8, 1.5, 5e3, 3e7, 0.4
     x, v, F = ca.SX.sym("x"), ca.SX.sym("v"), ca.SX.sym("F")
     system = OdeSystem((x, v), (F,), (v, (F - c * v - k * x - k3 * x**3 - fc * ca.sign(v)) / m), (), (), "hard")
-    clean = [simulate(system, time_grid(duration, 1000.0), method="rk4", substeps=16,
-                      inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed))
-             for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))]
+    clean = [
+        simulate(
+            system,
+            time_grid(duration, 1000.0),
+            method="rk4",
+            substeps=16,
+            inputs=symsbl.Multisine(rms=rms, f_min=3.0, f_max=40.0, seed=seed),
+        )
+        for duration, rms, seed in ((5.0, 8.0, 3), (3.0, 4.0, 9))
+    ]
     # one sensor for both records: the same absolute noise, 1 % of the first record's spread
     scale = 0.01 * clean[0].states.std(axis=0)
     rng = np.random.default_rng(0)
-    recs = [symsbl.Trajectory(r.t, r.states + scale * rng.standard_normal(r.states.shape), r.inputs, r.state_names,
-                              r.input_names) for r in clean]
+    recs = [
+        symsbl.Trajectory(
+            r.t, r.states + scale * rng.standard_normal(r.states.shape), r.inputs, r.state_names, r.input_names
+        )
+        for r in clean
+    ]
     floor = float(np.mean(scale / clean[1].states.std(axis=0)))  # the held-out record's relative noise
     report = discrepancy(recs[0], "x: v; v: F, x, v", heldout=recs[1], evidence="output-error")
     assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict

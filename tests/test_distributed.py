@@ -34,8 +34,9 @@ def record(duffing_short):
 
 @pytest.fixture(scope="module")
 def client():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
         with distributed.Client(cluster) as c:
             yield c
 
@@ -51,8 +52,11 @@ def _assert_same(a, b):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-13 * np.max(np.abs(y)), err_msg=name)
 
 
-@pytest.mark.parametrize("strategy", [WeakForm(window=29), WeakForm(window=30, overlap=2), PointDifference(),
-                                      SavitzkyGolay(window=9, polyorder=3)], ids=repr)
+@pytest.mark.parametrize(
+    "strategy",
+    [WeakForm(window=29), WeakForm(window=30, overlap=2), PointDifference(), SavitzkyGolay(window=9, polyorder=3)],
+    ids=repr,
+)
 def test_cluster_statistics_equal_the_single_process_ones(client, record, strategy):
     ref = stream_stats(record, LIB, derivative=strategy)
     got = dask_stats(_array(record), LIB, derivative=strategy, block_samples=700, **NAMES)
@@ -86,22 +90,35 @@ def test_threaded_scheduler_without_a_cluster(record):
 
 
 def test_bad_records_are_named(record):
-    with pytest.raises(DataError, match=r"records\[0\]: expected a dask.array.Array of shape \(n_samples, 4\) .* "
-                                        r"received ndarray"):
+    with pytest.raises(
+        DataError,
+        match=r"records\[0\]: expected a dask.array.Array of shape \(n_samples, 4\) .* "
+        r"received ndarray",
+    ):
         dask_stats(np.zeros((10, 4)), LIB, **NAMES)
-    with pytest.raises(DataError, match=exactly("records[0]: expected a dask.array.Array of shape (n_samples, 4) with "
-                                                "columns ['t', 'x1', 'x2', 'F'], received Delayed; turn a list of "
-                                                "delayed chunks into one with symsbl.from_delayed")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records[0]: expected a dask.array.Array of shape (n_samples, 4) with "
+            "columns ['t', 'x1', 'x2', 'F'], received Delayed; turn a list of "
+            "delayed chunks into one with symsbl.from_delayed"
+        ),
+    ):
         dask_stats([dask.delayed(np.zeros)((10, 4))], LIB, **NAMES)
     with pytest.raises(DataError, match=r"records\[0\]: expected shape \(n_samples, 4\) .* received shape \(4097, 3\)"):
         dask_stats(_array(record)[:, :3], LIB, **NAMES)
-    with pytest.raises(DataError, match=exactly('lengths: expected one length per chunk (1), received 2')):
+    with pytest.raises(DataError, match=exactly("lengths: expected one length per chunk (1), received 2")):
         from_delayed([dask.delayed(np.zeros)((10, 4))], n_columns=4, lengths=[5, 5])
 
 
 def test_missing_dask_says_how_to_install(monkeypatch, record):
     monkeypatch.setitem(sys.modules, "dask", None)
-    with pytest.raises(ImportError, match=exactly("identify_dask: expected Dask to be installed, received ImportError; "
-                                                  "install it with pip install 'dask[distributed]' (or pip install "
-                                                  "'.[dask]' from a clone of symsbl)")):
+    with pytest.raises(
+        ImportError,
+        match=exactly(
+            "identify_dask: expected Dask to be installed, received ImportError; "
+            "install it with pip install 'dask[distributed]' (or pip install "
+            "'.[dask]' from a clone of symsbl)"
+        ),
+    ):
         dask_stats(None, LIB, **NAMES)

@@ -25,7 +25,7 @@ def _pages():
 
 def _nav():
     config = (ROOT / "mkdocs.yml").read_text()
-    nav = config[config.index("\nnav:"):]
+    nav = config[config.index("\nnav:") :]
     return re.findall(r"^\s*-\s+(?:[^:\n]+:\s+)?([\w./-]+\.md)\s*$", nav, flags=re.MULTILINE)
 
 
@@ -43,8 +43,15 @@ def test_the_site_has_the_divio_sections():
     nav = _nav()
     for section in ("tutorials/", "how-to/", "explanation/", "reference/", "benchmarks/"):
         assert any(p.startswith(section) for p in nav), section
-    for page in ("index.md", "extending.md", "architecture.md", "changelog.md", "reference/cli.md",
-                 "reference/model-file.md", "reference/exit-codes.md"):
+    for page in (
+        "index.md",
+        "extending.md",
+        "architecture.md",
+        "changelog.md",
+        "reference/cli.md",
+        "reference/model-file.md",
+        "reference/exit-codes.md",
+    ):
         assert page in nav, page
 
 
@@ -93,8 +100,12 @@ def test_the_cli_reference_names_every_option_of_every_command():
     reference = (DOCS / "reference" / "cli.md").read_text()
     commands = _options(build_parser())
     assert {"identify", "validate", "discrepancy", "demo"} <= set(commands)
-    missing = {(command, option) for command, options in commands.items() for option in options
-               if f"`{option}" not in reference}
+    missing = {
+        (command, option)
+        for command, options in commands.items()
+        for option in options
+        if f"`{option}" not in reference
+    }
     assert not missing, sorted(missing)
     for command in commands:
         assert f"symsbl {command}" in reference, command
@@ -102,8 +113,9 @@ def test_the_cli_reference_names_every_option_of_every_command():
 
 def test_the_readme_is_a_short_front_door_that_links_the_site():
     readme = (ROOT / "README.md").read_text()
-    assert readme.count("\n") <= 250, (f"README.md has {readme.count(chr(10))} lines (at most 250: move sections to "
-                                       "docs/)")
+    assert readme.count("\n") <= 250, (
+        f"README.md has {readme.count(chr(10))} lines (at most 250: move sections to docs/)"
+    )
     assert "](docs/index.md)" in readme, "README.md does not link the documentation site (docs/index.md)"
     for section in ("## Install", "## Two commands", "## Quickstart"):
         assert section in readme, section

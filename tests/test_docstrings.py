@@ -12,13 +12,28 @@ import pytest
 
 import symsbl
 
-MODULES = sorted(m.name.removeprefix("symsbl.") for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.")
-                 if not m.name.endswith("__main__"))
+MODULES = sorted(
+    m.name.removeprefix("symsbl.")
+    for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.")
+    if not m.name.endswith("__main__")
+)
 #: Modules whose examples need an optional extra.
 EXTRAS = {"plots": "matplotlib", "_scale.dask": "dask", "_discrepancy.figures": "matplotlib", "_figures": "matplotlib"}
 #: Result containers and errors: users receive them, they do not call them.
-RESULTS = {"ChunkedRecord", "DemoResult", "DiscrepancyReport", "Variant", "DiscrepancyStep", "Disagreement",
-           "EffectScore", "Equation", "RegressionStats", "TermEstimate", "TruthComparison", "Validation"}
+RESULTS = {
+    "ChunkedRecord",
+    "DemoResult",
+    "DiscrepancyReport",
+    "Variant",
+    "DiscrepancyStep",
+    "Disagreement",
+    "EffectScore",
+    "Equation",
+    "RegressionStats",
+    "TermEstimate",
+    "TruthComparison",
+    "Validation",
+}
 
 
 @pytest.mark.parametrize("name", MODULES)
@@ -46,8 +61,11 @@ def _needs_example(obj) -> bool:
 
 
 def test_every_public_entry_point_has_an_example():
-    missing = [n for n in symsbl.__all__ if _needs_example(getattr(symsbl, n))
-               and ">>> " not in (inspect.getdoc(getattr(symsbl, n)) or "")]
+    missing = [
+        n
+        for n in symsbl.__all__
+        if _needs_example(getattr(symsbl, n)) and ">>> " not in (inspect.getdoc(getattr(symsbl, n)) or "")
+    ]
     assert missing == [], f"public functions and classes without an Examples section: {missing}"
 
 

@@ -15,8 +15,11 @@ import symsbl
 from symsbl._base import errors as _errors
 
 PACKAGE = Path(symsbl.__file__).parent
-ERROR_CLASSES = {name for name, obj in vars(_errors).items()
-                 if inspect.isclass(obj) and issubclass(obj, Exception) and not issubclass(obj, Warning)}
+ERROR_CLASSES = {
+    name
+    for name, obj in vars(_errors).items()
+    if inspect.isclass(obj) and issubclass(obj, Exception) and not issubclass(obj, Warning)
+}
 WARNING_CLASSES = {name for name, obj in vars(_errors).items() if inspect.isclass(obj) and issubclass(obj, Warning)}
 #: Names that hold one of those classes at run time (a parameter ``error`` of the shared checks, ``type(err)``).
 ERROR_VARIABLES = {"error", "type"}

@@ -90,8 +90,11 @@ def test_auto_falls_back_without_compiler_and_true_requires_one(monkeypatch):
     assert not ev.is_compiled
     z = samples(19, 1)
     np.testing.assert_allclose(ev.evaluate(z), polynomial_reference(z, 4), rtol=1e-12, atol=0)
-    with pytest.raises(LibraryError, match=r"jit: expected a C compiler \(gcc or cc on PATH\) for jit=True, "
-                                           r"received none found; install gcc or pass jit='auto'"):
+    with pytest.raises(
+        LibraryError,
+        match=r"jit: expected a C compiler \(gcc or cc on PATH\) for jit=True, "
+        r"received none found; install gcc or pass jit='auto'",
+    ):
         Evaluator(library, jit=True)
     evaluator_module._compile.cache_clear()
 
@@ -114,7 +117,7 @@ def test_random_polynomials_equal_numpy_products(n_vars, degree, n, chunk, seed)
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        (dict(chunk_size=0), exactly('chunk_size: expected an integer >= 1, received 0')),
+        (dict(chunk_size=0), exactly("chunk_size: expected an integer >= 1, received 0")),
         (dict(jit="yes"), exactly("jit: expected one of 'auto', True, False, received 'yes'")),
         (dict(parallel="openmp"), exactly("parallel: expected one of 'serial', 'thread', received 'openmp'")),
     ],
@@ -134,8 +137,9 @@ def test_library_errors():
 def test_data_shape_errors_name_the_variables():
     ev = Evaluator(paper((X1, X2), (F,), degree=1), chunk_size=8, jit=False)
     with pytest.raises(
-        LibraryError, match=r"Z: expected shape \(n_samples, 3\) with columns \['x1', 'x2', 'F'\], received shape "
-                            r"\(10, 2\)"
+        LibraryError,
+        match=r"Z: expected shape \(n_samples, 3\) with columns \['x1', 'x2', 'F'\], received shape "
+        r"\(10, 2\)",
     ):
         ev.evaluate(np.zeros((10, 2)))
     with pytest.raises(LibraryError, match=r"received shape \(3,\); pass one column per variable"):
@@ -144,8 +148,11 @@ def test_data_shape_errors_name_the_variables():
         list(ev.iter_chunks(np.zeros((2, 2, 3))))
     with pytest.raises(LibraryError, match=r"Z: expected a numeric array of shape \(n_samples, 3\)"):
         ev.evaluate([["a", "b", "c"]])
-    with pytest.raises(LibraryError, match=r"out: expected a writeable C-contiguous float64 array of shape \(4, 14\), "
-                                           r"received float64 array of shape \(5, 4\)"):
+    with pytest.raises(
+        LibraryError,
+        match=r"out: expected a writeable C-contiguous float64 array of shape \(4, 14\), "
+        r"received float64 array of shape \(5, 4\)",
+    ):
         ev.evaluate(np.zeros((4, 3)), out=np.zeros((5, 4)))
     with pytest.raises(LibraryError, match=r"out: .* received float32 array of shape \(4, 14\)"):
         ev.evaluate(np.zeros((4, 3)), out=np.zeros((4, 14), np.float32))
@@ -163,8 +170,11 @@ def test_compile_failure_falls_back_silently_unless_jit_is_required(monkeypatch)
     assert not ev.is_compiled
     z = samples(11, 2)
     np.testing.assert_allclose(ev.evaluate(z), polynomial_reference(z, 2), rtol=1e-12, atol=0)
-    with pytest.raises(LibraryError, match=r"jit: expected a successful compilation for jit=True, received .+; "
-                                           r"pass jit='auto'"):
+    with pytest.raises(
+        LibraryError,
+        match=r"jit: expected a successful compilation for jit=True, received .+; "
+        r"pass jit='auto'",
+    ):
         Evaluator(library, jit=True)
     evaluator_module._compile.cache_clear()
 

@@ -40,4 +40,4 @@ def test_readme_quickstart_is_the_example_verbatim():
 def test_the_docs_show_every_example():
     pages = "\n".join(p.read_text() for p in (ROOT / "docs").rglob("*.md"))
     missing = [p.name for p in EXAMPLES if f'--8<-- "examples/{p.name}"' not in pages]
-    assert not missing, f"examples no documentation page includes (--8<-- \"examples/NAME.py\"): {missing}"
+    assert not missing, f'examples no documentation page includes (--8<-- "examples/NAME.py"): {missing}'

@@ -120,32 +120,52 @@ def _traj(n=200, **kw):
 
 def test_error_unknown_variable():
     lib = polynomial(symbols("x1 y"), 2)
-    with pytest.raises(LibraryError, match=exactly("library: expected variables named like the data's states ['x1', "
-                                                   "'x2'] and inputs ['F'], received a library that also uses ['y']; "
-                                                   "declare the library with symbols named like the columns")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "library: expected variables named like the data's states ['x1', "
+            "'x2'] and inputs ['F'], received a library that also uses ['y']; "
+            "declare the library with symbols named like the columns"
+        ),
+    ):
         identify(_traj(), lib)
 
 
 def test_error_state_without_variation():
     t = np.arange(200) / 100.0
     tr = Trajectory(t=t, states=np.column_stack([np.sin(t), np.full_like(t, 2.0)]), state_names=("x1", "x2"))
-    with pytest.raises(DataError, match=exactly("state 'x2': expected a column that varies, received a constant 2; "
-                                                "remove it from the states or record a response in which it moves")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "state 'x2': expected a column that varies, received a constant 2; "
+            "remove it from the states or record a response in which it moves"
+        ),
+    ):
         identify(tr, polynomial(symbols("x1 x2"), 2))
 
 
 def test_error_fewer_rows_than_terms():
     lib = paper(symbols("x1 x2"), symbols("F"), degree=6)
-    with pytest.raises(DataError, match=exactly('rows: expected more regression rows than candidate terms (94), '
-                                                'received 60 rows from 1 record(s) with CentralDifference; use longer '
-                                                'records, fewer candidate terms (a lower degree) or a derivative '
-                                                'strategy with more rows')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "rows: expected more regression rows than candidate terms (94), "
+            "received 60 rows from 1 record(s) with CentralDifference; use longer "
+            "records, fewer candidate terms (a lower degree) or a derivative "
+            "strategy with more rows"
+        ),
+    ):
         identify(_traj(n=60), lib, derivative="central")
 
 
 def test_error_data_type():
-    with pytest.raises(DataError, match=exactly('data: expected a Trajectory or a non-empty list of Trajectories, '
-                                                'received ndarray; read files with symsbl.read_trajectory')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "data: expected a Trajectory or a non-empty list of Trajectories, "
+            "received ndarray; read files with symsbl.read_trajectory"
+        ),
+    ):
         identify(np.zeros((10, 2)), polynomial(symbols("x1 x2"), 2))
 
 

@@ -60,8 +60,9 @@ def test_a_compiled_function_is_loaded_from_disk_in_a_later_run_without_compilin
     assert is_compiled and again is not compiled
     np.testing.assert_allclose(evaluate(again), reference, rtol=1e-14)
     # jit="auto" on a short record compiles nothing on a first request, but takes what an earlier run compiled
-    _, is_compiled = jit_module.jit_wrap(mapped(3), "f_chunk", "auto", SimulationError, only_cached=True,
-                                         key="another key")
+    _, is_compiled = jit_module.jit_wrap(
+        mapped(3), "f_chunk", "auto", SimulationError, only_cached=True, key="another key"
+    )
     assert is_compiled
 
 
@@ -74,8 +75,10 @@ def test_a_short_first_request_compiles_nothing_and_the_second_compiles(fresh):
 
 def test_a_damaged_library_is_built_again(fresh, monkeypatch):
     # compiled by another process (a library this process has loaded is never read again from its path)
-    script = (f"import sys; sys.path.insert(0, {os.path.dirname(__file__)!r}); import test_jit, symsbl._base.jit as j, "
-              "symsbl; j.jit_wrap(test_jit.mapped(4), 'f_chunk', True, symsbl.SimulationError)")
+    script = (
+        f"import sys; sys.path.insert(0, {os.path.dirname(__file__)!r}); import test_jit, symsbl._base.jit as j, "
+        "symsbl; j.jit_wrap(test_jit.mapped(4), 'f_chunk', True, symsbl.SimulationError)"
+    )
     subprocess.run([sys.executable, "-c", script], check=True, env=dict(os.environ))
     (library,) = fresh.iterdir()
     damaged = fresh / "damaged"

@@ -23,8 +23,9 @@ def forcing(rms, seed, periods):
     """A multisine (4-100 Hz) sampled over whole periods, interpolated band-limited between samples (exact
     for it, and ~50x cheaper to integrate than its 393 sines)."""
     t = np.arange(periods * N) / FS
-    return t, symsbl.Sampled(t, symsbl.Multisine(rms=rms, f_min=4.0, f_max=100.0, seed=seed, period=PERIOD)(t),
-                             kind="periodic")
+    return t, symsbl.Sampled(
+        t, symsbl.Multisine(rms=rms, f_min=4.0, f_max=100.0, seed=seed, period=PERIOD)(t), kind="periodic"
+    )
 
 
 def periodic_record(system, *, rms=40.0, seed=1, periods=4, warm=2, noise=0.01, noise_seed=5):
@@ -47,7 +48,7 @@ def identify_hidden(record, **kwargs):
 def steady_state(system, rms, seed):
     """The last of three periods of ``system``'s response to a fresh multisine, from rest."""
     t, u = forcing(rms, seed, 3)
-    return symsbl.simulate(system, t, inputs=u, method="rk4", substeps=8).column("x1")[2 * N:]
+    return symsbl.simulate(system, t, inputs=u, method="rk4", substeps=8).column("x1")[2 * N :]
 
 
 # -- the periodic record ------------------------------------------------------------------------------
@@ -56,8 +57,8 @@ def test_periods_found_and_transient_dropped():
     period = 500
     u1 = rng.standard_normal(period)
     u = np.concatenate([u1[-137:], np.tile(u1, 5)])  # a partial period first
-    y = np.tile(np.sin(np.arange(period) / 20.0), 6)[-u.size:] + 1e-3 * rng.standard_normal(u.size)
-    y[137:137 + period] += 0.05 * np.exp(-np.arange(period) / 100.0)  # the first whole period: a transient
+    y = np.tile(np.sin(np.arange(period) / 20.0), 6)[-u.size :] + 1e-3 * rng.standard_normal(u.size)
+    y[137 : 137 + period] += 0.05 * np.exp(-np.arange(period) / 100.0)  # the first whole period: a transient
     t = np.arange(u.size) / FS
     periods = split_periods(t, u, y)
     # brute force: the smallest lag at which u repeats
@@ -71,7 +72,7 @@ def test_aperiodic_input_is_taken_whole():
     t = np.arange(3000) / FS
     assert split_periods(t, rng.standard_normal(t.size), rng.standard_normal(t.size)) is None
     with pytest.raises(symsbl.DataError, match=r"^data: expected a uniformly sampled record"):
-        split_periods(t ** 1.5, rng.standard_normal(t.size), rng.standard_normal(t.size))
+        split_periods(t**1.5, rng.standard_normal(t.size), rng.standard_normal(t.size))
 
 
 def test_transient_record_derivatives_and_noise_floor():
@@ -81,14 +82,14 @@ def test_transient_record_derivatives_and_noise_floor():
     t = np.arange(n) / FS
     f = np.linspace(3.0, 60.0, 40)
     phase = rng.uniform(0, 2 * np.pi, f.size)
-    u = np.sin(2 * np.pi * np.outer(t, f) + phase).sum(axis=1)          # not periodic over the record
-    y = (np.sin(2 * np.pi * np.outer(t, f) + phase) / f).sum(axis=1) + 0.3 * t   # with a drift
+    u = np.sin(2 * np.pi * np.outer(t, f) + phase).sum(axis=1)  # not periodic over the record
+    y = (np.sin(2 * np.pi * np.outer(t, f) + phase) / f).sum(axis=1) + 0.3 * t  # with a drift
     v = (2 * np.pi * np.cos(2 * np.pi * np.outer(t, f) + phase)).sum(axis=1) + 0.3
     spectra = Spectra(whole_record(t, u, y + sd * rng.standard_normal(n)), periodic=False)
     keep = spectra.valid
     assert 0.5 * n < keep.sum() < n and not keep[0] and not keep[-1]
     assert np.sqrt(np.mean((spectra.v - v)[keep] ** 2)) < 4 * spectra.sd(spectra.iw)
-    assert spectra.noise_var == pytest.approx(sd ** 2, rel=0.1)   # the variance that was added
+    assert spectra.noise_var == pytest.approx(sd**2, rel=0.1)  # the variance that was added
 
 
 def test_spectral_derivatives_and_noise_of_the_average():
@@ -98,11 +99,12 @@ def test_spectral_derivatives_and_noise_of_the_average():
     u = sum(np.sin(2 * np.pi * f * t + f) for f in (3.0, 5.0, 7.0, 11.0, 13.0, 17.0, 19.0, 23.0, 29.0))
     y = np.sin(2 * np.pi * 7.0 * t) + 0.3 * np.cos(2 * np.pi * 13.0 * t)
     sd = 0.01
-    spectra = Spectra(split_periods(np.arange(P * n) / FS, np.tile(u, P), np.tile(y, P)
-                                    + sd * rng.standard_normal(P * n)))
+    spectra = Spectra(
+        split_periods(np.arange(P * n) / FS, np.tile(u, P), np.tile(y, P) + sd * rng.standard_normal(P * n))
+    )
     v = 2 * np.pi * (7.0 * np.cos(2 * np.pi * 7.0 * t) - 0.3 * 13.0 * np.sin(2 * np.pi * 13.0 * t))
     assert np.sqrt(np.mean((spectra.v - v) ** 2)) < 4 * spectra.sd(spectra.iw)  # within its propagated noise
-    assert spectra.noise_var == pytest.approx(sd ** 2 / P, rel=0.05)  # the variance that was added
+    assert spectra.noise_var == pytest.approx(sd**2 / P, rel=0.05)  # the variance that was added
 
 
 def test_linear_skeleton_by_frequency_domain_output_error():
@@ -122,8 +124,10 @@ CASES = {
     "n2": dict(A=4e4, n=2, a=2.8, b=1.2, m=1.2, c=5.0, k=4e4),
 }
 #: term -> (parameter, sign, degree in x3) of the true law
-LAWS = {"n1": {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)},
-        "n2": {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)}}
+LAWS = {
+    "n1": {"x2": ("A", 1, 0), "x3*Abs(x2)": ("a", -1, 1), "x2*Abs(x3)": ("b", -1, 1)},
+    "n2": {"x2": ("A", 1, 0), "x3*Abs(x2)*Abs(x3)": ("a", -1, 2), "x2*x3**2": ("b", -1, 2)},
+}
 
 
 def check_hidden_law(model, case):
@@ -190,8 +194,21 @@ def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, 
     symsbl.write_trajectory(record, tmp_path / "train.csv")
     held, _ = periodic_record(system, rms=24.0, seed=7, periods=2, noise=0.0)
     symsbl.write_trajectory(held, tmp_path / "held.csv")
-    code = main(["identify", str(tmp_path / "train.csv"), "--states", "x1,x2,x3", "--inputs", "F",
-                 "--kinematics", "x1:x2", "--json", str(tmp_path / "model.json"), "--quiet"])
+    code = main(
+        [
+            "identify",
+            str(tmp_path / "train.csv"),
+            "--states",
+            "x1,x2,x3",
+            "--inputs",
+            "F",
+            "--kinematics",
+            "x1:x2",
+            "--json",
+            str(tmp_path / "model.json"),
+            "--quiet",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0
     assert "x3: latent (not measured); scaled so that its coefficient in x2' is" in out
@@ -200,8 +217,18 @@ def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, 
     assert doc["measured"] == ["x1"] and list(doc["latent"]) == ["x3"]
     check_hidden_law(symsbl.IdentifiedModel.from_json(doc), "n1")  # the model file carries the law
     assert doc["latent"]["x3"].startswith("scaled so that its coefficient in x2' is -")
-    code = main(["validate", str(tmp_path / "model.json"), str(tmp_path / "held.csv"), "--json",
-                 str(tmp_path / "val.json"), "--plot", str(tmp_path / "fig.png"), "--quiet"])
+    code = main(
+        [
+            "validate",
+            str(tmp_path / "model.json"),
+            str(tmp_path / "held.csv"),
+            "--json",
+            str(tmp_path / "val.json"),
+            "--plot",
+            str(tmp_path / "fig.png"),
+            "--quiet",
+        ]
+    )
     assert code == 0
     assert (tmp_path / "fig.png").stat().st_size > 10_000  # Figure 2: panel (b) shows x1, panel (c) the law of x3
     # the held-out record starts in steady state; its unmeasured initial velocity and force are fitted
@@ -232,12 +259,16 @@ def test_verdict_rules():
     hysteresis = law(v, ca.fabs(v) * z, v * ca.fabs(z))
     penalty = 0.5 * np.log(1000) + np.log(10)  # 5.76 nats
     linear = fitted([], 100.0)
-    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty + 0.1)},
-                            1000, 10)[:2] == ("hidden", "hidden")
-    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty - 0.1)},
-                            1000, 10)[:2] == ("nothing hidden (linear)", "linear")
+    assert branches.verdict(
+        {"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty + 0.1)}, 1000, 10
+    )[:2] == ("hidden", "hidden")
+    assert branches.verdict(
+        {"linear": linear, "memoryless": linear, "hidden": fitted(hysteresis, 100 + penalty - 0.1)}, 1000, 10
+    )[:2] == ("nothing hidden (linear)", "linear")
     spring = law(v, v * ca.fabs(z))  # z' = v (1 + |z|): z = G(y), an elastic force
-    assert branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(spring, 1e6)}, 1000, 10)[0] \
+    assert (
+        branches.verdict({"linear": linear, "memoryless": linear, "hidden": fitted(spring, 1e6)}, 1000, 10)[0]
         == "nothing hidden (linear)"
+    )
     assert branches.verdict({"linear": linear, "hidden": fitted(hysteresis, 200.0)}, 1000, 10)[0] == "hidden"
     assert branches.verdict({"hidden": fitted(hysteresis, -1e9)}, 1000, 10)[:2] == ("hidden", "hidden")

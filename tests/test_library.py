@@ -99,9 +99,7 @@ def test_eq21_deduplication_removes_exactly_the_duplicate_columns(n_states, degr
     assert distinct_up_to_scale(np.hstack([kept, raw])) == len(library)  # nothing distinct lost
     assert library.variable_names == [s.name() for s in states] + ["F"]
     assert library.names[:2] == ["F", "1"]
-    assert library.names[-4 * n_states :] == [
-        f"{f}({s.name()})" for f in ("sin", "cos", "tan", "sign") for s in states
-    ]
+    assert library.names[-4 * n_states :] == [f"{f}({s.name()})" for f in ("sin", "cos", "tan", "sign") for s in states]
 
 
 def test_polynomial_order_matches_combinations_with_replacement():
@@ -207,30 +205,52 @@ def test_function_evaluates_the_terms():
 @pytest.mark.parametrize(
     "build, match",
     [
-        (lambda: elementwise((X1,), ("sin", "sinc")), exactly("functions: expected names among ['abs', 'atan', 'cos', "
-                                                              "'exp', 'sign', 'sin', 'tan', 'tanh'], received "
-                                                              "['sinc']")),
+        (
+            lambda: elementwise((X1,), ("sin", "sinc")),
+            exactly(
+                "functions: expected names among ['abs', 'atan', 'cos', "
+                "'exp', 'sign', 'sin', 'tan', 'tanh'], received "
+                "['sinc']"
+            ),
+        ),
         (lambda: polynomial((X1,), -1), r"degree: expected an integer >= 0, received -1"),
         (lambda: polynomial((X1,), 2.0), r"degree: expected an integer >= 0, received 2.0"),
         (lambda: polynomial("x1 x2", 2), r"variables: expected a sequence of scalar casadi.SX symbols, received str"),
         (lambda: polynomial((X1, X1 * 2), 2), r"variables\[1\]: expected a scalar casadi.SX symbol"),
-        (lambda: polynomial((X1, symbols("x1")[0]), 2), exactly("variables: expected distinct symbol names, received "
-                                                                "['x1', 'x1']; rename the repeated ['x1']")),
-        (lambda: Library([X1 * X3], (X1, X2)), exactly("terms[0]: expected an expression of the variables ['x1', "
-                                                       "'x2'], received one that also uses ['x3']; declare them as "
-                                                       "variables")),
-        (lambda: Library([X1, ca.vertcat(X1, X2)], (X1, X2)), r"terms\[1\]: expected a scalar expression, received "
-                                                              r"shape \(2, 1\)"),
+        (
+            lambda: polynomial((X1, symbols("x1")[0]), 2),
+            exactly("variables: expected distinct symbol names, received ['x1', 'x1']; rename the repeated ['x1']"),
+        ),
+        (
+            lambda: Library([X1 * X3], (X1, X2)),
+            exactly(
+                "terms[0]: expected an expression of the variables ['x1', "
+                "'x2'], received one that also uses ['x3']; declare them as "
+                "variables"
+            ),
+        ),
+        (
+            lambda: Library([X1, ca.vertcat(X1, X2)], (X1, X2)),
+            r"terms\[1\]: expected a scalar expression, received "
+            r"shape \(2, 1\)",
+        ),
         (lambda: Library(["x1"], (X1,)), r"terms\[0\]: expected a casadi.SX, sympy expression or Term, received str"),
         (lambda: Library([X1], ()), r"variables: expected at least one scalar casadi.SX symbol"),
         (lambda: paper((X1,), (X1,), 2), r"states \+ inputs: expected distinct symbol names"),
-        (lambda: paper((X1, X2), (F,), 2).index("x1**2*abs(x2)"), exactly("name: expected a term of this library of 22 "
-                                                                          "terms, received 'x1**2*abs(x2)'; close "
-                                                                          "names: ['x2*Abs(x2)', 'x1*Abs(x2)', "
-                                                                          "'x2*Abs(x1)', 'x1*Abs(x1)', "
-                                                                          "'Abs(x1)*Abs(x2)']; see Library.names")),
-        (lambda: paper((X1, X2), (F,), 2).drop(["nope"]), exactly("name: expected a term of this library of 22 terms, "
-                                                                  "received 'nope'; see Library.names")),
+        (
+            lambda: paper((X1, X2), (F,), 2).index("x1**2*abs(x2)"),
+            exactly(
+                "name: expected a term of this library of 22 "
+                "terms, received 'x1**2*abs(x2)'; close "
+                "names: ['x2*Abs(x2)', 'x1*Abs(x2)', "
+                "'x2*Abs(x1)', 'x1*Abs(x1)', "
+                "'Abs(x1)*Abs(x2)']; see Library.names"
+            ),
+        ),
+        (
+            lambda: paper((X1, X2), (F,), 2).drop(["nope"]),
+            exactly("name: expected a term of this library of 22 terms, received 'nope'; see Library.names"),
+        ),
     ],
 )
 def test_errors_name_argument_expected_and_received(build, match):

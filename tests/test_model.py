@@ -70,10 +70,16 @@ def test_casadi_system_reproduces_the_identified_equations(duffing):
     system = model.to_system()
     rhs = system.evaluate_rhs(data.states[:50], data.inputs[:50])
     for k, eq in enumerate(model.equations):
-        expected = sum(t.coef * np.array([float(ca.Function("f", list(model.states) + list(model.inputs),
-                                                            [t.expr])(*row))
-                                          for row in np.hstack([data.states[:50], data.inputs[:50]])])
-                       for t in eq.terms)
+        expected = sum(
+            t.coef
+            * np.array(
+                [
+                    float(ca.Function("f", list(model.states) + list(model.inputs), [t.expr])(*row))
+                    for row in np.hstack([data.states[:50], data.inputs[:50]])
+                ]
+            )
+            for t in eq.terms
+        )
         np.testing.assert_allclose(rhs[:, k], expected, rtol=1e-12, atol=1e-9)
 
 
@@ -103,21 +109,32 @@ def test_load_errors(tmp_path):
         IdentifiedModel.load(bad)
     with pytest.raises(DataError, match=r"missing\.json': expected an existing JSON file, received no such file$"):
         IdentifiedModel.load(tmp_path / "missing.json")
-    with pytest.raises(DataError,
-                       match=exactly("model JSON: expected a field 'equations', received fields ['states']")):
+    with pytest.raises(
+        DataError, match=exactly("model JSON: expected a field 'equations', received fields ['states']")
+    ):
         IdentifiedModel.from_json({"states": ["x"]})
     doc = {"states": ["x"], "inputs": [], "equations": [{"lhs": "x", "terms": [{"term": "y**2", "coef": 1.0}]}]}
-    with pytest.raises(DataError, match=exactly(
+    with pytest.raises(
+        DataError,
+        match=exactly(
             "model JSON.equations[0].terms[0].term: expected a variable among ['x'] or a constant (pi, E) in 'y**2', "
-            "received 'y' at position 0")):
+            "received 'y' at position 0"
+        ),
+    ):
         IdentifiedModel.from_json(doc)
 
 
 def test_a_term_defined_for_positive_values_only_loads_with_its_rhs():
     # a tank level's sqrt(h): NaN at negative probes on both sides is agreement, not a mismatch
     def doc(rhs):
-        return {"states": ["h"], "inputs": ["q"], "equations": [{"lhs": "h", "rhs": rhs, "terms": [
-            {"term": "q", "coef": 2.0}, {"term": "sqrt(h)", "coef": -0.5}]}]}
+        return {
+            "states": ["h"],
+            "inputs": ["q"],
+            "equations": [
+                {"lhs": "h", "rhs": rhs, "terms": [{"term": "q", "coef": 2.0}, {"term": "sqrt(h)", "coef": -0.5}]}
+            ],
+        }
+
     model = IdentifiedModel.from_json(doc("-0.5*sqrt(h) + 2.0*q"))
     assert model.equation("h").coef("sqrt(h)") == -0.5
     with pytest.raises(DataError, match=r"equations\[0\]\.rhs: expected the sum of the equation's terms"):
@@ -159,12 +176,17 @@ def test_divergence_is_reported_not_raised():
 def test_validation_errors(duffing):
     _, data, model = duffing
     other = Trajectory(t=data.t, states=data.states, inputs=data.inputs, state_names=("y1", "y2"), input_names=("F",))
-    with pytest.raises(DataError, match=exactly("data: expected the model's channels ['x1', 'x2'], received columns "
-                                                "['y1', 'y2'] (missing ['x1', 'x2'])")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "data: expected the model's channels ['x1', 'x2'], received columns ['y1', 'y2'] (missing ['x1', 'x2'])"
+        ),
+    ):
         validate_model(model, other)
     no_input = Trajectory(t=data.t, states=data.states, state_names=("x1", "x2"))
-    with pytest.raises(DataError, match=exactly("data: expected the model's inputs ['F'], received inputs [] (missing "
-                                                "['F'])")):
+    with pytest.raises(
+        DataError, match=exactly("data: expected the model's inputs ['F'], received inputs [] (missing ['F'])")
+    ):
         validate_model(model, no_input)
 
 
@@ -216,8 +238,11 @@ def test_draws_that_diverge_are_left_out_of_the_band_and_said_so():
 @pytest.mark.parametrize("n_band", [-1, 2.5, True])
 def test_a_bad_number_of_band_draws_is_named(duffing, n_band):
     system, data, model = duffing
-    with pytest.raises(DataError, match=rf"n_band: expected a number of Monte Carlo draws >= 0 \(0: no band\), "
-                                        rf"received {n_band!r}"):
+    with pytest.raises(
+        DataError,
+        match=rf"n_band: expected a number of Monte Carlo draws >= 0 \(0: no band\), "
+        rf"received {n_band!r}",
+    ):
         validate_model(model, data.slice(0, 1000), n_band=n_band)
 
 
@@ -227,8 +252,13 @@ def test_the_batched_band_equals_one_simulation_per_draw(duffing, duffing_heldou
 
     _, _, model = duffing
     system = model.to_system()
-    kw = dict(inputs=symsbl.Sampled(duffing_heldout.t, duffing_heldout.inputs), x0=duffing_heldout.states[0],
-              method="rk4", substeps=1, on_divergence="truncate")
+    kw = dict(
+        inputs=symsbl.Sampled(duffing_heldout.t, duffing_heldout.inputs),
+        x0=duffing_heldout.states[0],
+        method="rk4",
+        substeps=1,
+        on_divergence="truncate",
+    )
     (lower, upper), n = _band(model, system, duffing_heldout, kw, 12, seed=3)
     draws = _draws(model, 12, seed=3)
     runs = np.stack(_band_loop(system, duffing_heldout, kw, draws), axis=1)

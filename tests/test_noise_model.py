@@ -56,7 +56,7 @@ def test_fit_ar_recovers_ar2_within_asymptotic_standard_errors():
     impulse = np.zeros(4000)
     impulse[0] = 1.0
     psi = _ar(AR2, impulse)
-    gamma = [sigma**2 * float(psi[:psi.size - k] @ psi[k:]) for k in range(2)]
+    gamma = [sigma**2 * float(psi[: psi.size - k] @ psi[k:]) for k in range(2)]
     se = np.sqrt(np.diag(sigma**2 * np.linalg.inv(scipy.linalg.toeplitz(gamma)) / n))
     assert rows == n - 2
     assert np.all(np.abs(a - AR2) < 4 * se), (a, se)
@@ -104,8 +104,9 @@ def test_innovations_equal_scipy_fir_filter_and_undo_the_ar_filter():
     rng = np.random.default_rng(2)
     r = rng.standard_normal(500)
     for a in (np.array([0.4]), AR2, np.array([0.3, -0.2, 0.1, 0.05])):
-        np.testing.assert_allclose(innovations(r, a), scipy.signal.lfilter(np.concatenate([[1.0], a]), [1.0], r)
-                                   [a.size:], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            innovations(r, a), scipy.signal.lfilter(np.concatenate([[1.0], a]), [1.0], r)[a.size :], rtol=0, atol=1e-12
+        )
     w = rng.standard_normal(500)
     np.testing.assert_allclose(innovations(_ar(AR2, w), AR2), w[2:], rtol=0, atol=1e-10)
     np.testing.assert_array_equal(innovations(r, np.zeros(0)), r)

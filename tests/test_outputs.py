@@ -77,9 +77,13 @@ def test_a_dangling_link_creates_its_target_or_is_refused(tmp_path, model):
     assert link.is_symlink() and (tmp_path / "dir" / "new.json").is_file()
     lost = tmp_path / "lost.json"
     lost.symlink_to("nowhere/new.json")
-    with pytest.raises(symsbl.DataError, match=exactly(
+    with pytest.raises(
+        symsbl.DataError,
+        match=exactly(
             f"path: expected a file in an existing directory, received {str(lost)!r} (a symbolic link to "
-            f"{str(tmp_path / 'nowhere' / 'new.json')!r}); create {str(tmp_path / 'nowhere')!r} first")):
+            f"{str(tmp_path / 'nowhere' / 'new.json')!r}); create {str(tmp_path / 'nowhere')!r} first"
+        ),
+    ):
         model.save(lost)
     assert lost.is_symlink() and not (tmp_path / "nowhere").exists()
 
@@ -87,9 +91,13 @@ def test_a_dangling_link_creates_its_target_or_is_refused(tmp_path, model):
 def test_a_loop_of_links_is_refused(tmp_path, model):
     (tmp_path / "a").symlink_to("b")
     (tmp_path / "b").symlink_to("a")
-    with pytest.raises(symsbl.DataError, match=exactly(
+    with pytest.raises(
+        symsbl.DataError,
+        match=exactly(
             f"path: expected a path that can be opened, received {str(tmp_path / 'a')!r} (Too many levels of "
-            "symbolic links)")):
+            "symbolic links)"
+        ),
+    ):
         model.save(tmp_path / "a")
 
 
@@ -107,8 +115,24 @@ def test_a_character_device_is_written_through_not_replaced(tmp_path, model, rec
     node = _char_device(tmp_path)
     model.save(node)
     assert stat.S_ISCHR(os.lstat(node).st_mode)
-    code = main(["identify", str(record_file), "--states", "x1,x2", "--inputs", "F", "--library", "poly",
-                 "--degree", "1", "--no-refine", "--quiet", "--json", str(node)])
+    code = main(
+        [
+            "identify",
+            str(record_file),
+            "--states",
+            "x1,x2",
+            "--inputs",
+            "F",
+            "--library",
+            "poly",
+            "--degree",
+            "1",
+            "--no-refine",
+            "--quiet",
+            "--json",
+            str(node),
+        ]
+    )
     assert code == 0 and stat.S_ISCHR(os.lstat(node).st_mode)
     assert capsys.readouterr().out.endswith(f"model written to {node}\n")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["null"]
@@ -117,10 +141,31 @@ def test_a_character_device_is_written_through_not_replaced(tmp_path, model, rec
 def test_dev_stdout_redirected_to_a_file_gets_the_model_after_what_was_printed(tmp_path, record_file):
     out = tmp_path / "out.txt"
     with open(out, "w") as fh:
-        proc = subprocess.run([sys.executable, "-m", "symsbl", "identify", str(record_file), "--states", "x1,x2",
-                               "--inputs", "F", "--library", "poly", "--degree", "1", "--no-refine", "--quiet",
-                               "--json", "/dev/stdout"], stdout=fh, stderr=subprocess.PIPE, text=True,
-                              env={**os.environ, "PYTHONPATH": str(Path(symsbl.__file__).parents[1])})
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "symsbl",
+                "identify",
+                str(record_file),
+                "--states",
+                "x1,x2",
+                "--inputs",
+                "F",
+                "--library",
+                "poly",
+                "--degree",
+                "1",
+                "--no-refine",
+                "--quiet",
+                "--json",
+                "/dev/stdout",
+            ],
+            stdout=fh,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(Path(symsbl.__file__).parents[1])},
+        )
     assert proc.returncode == 0, proc.stderr
     text = out.read_text()
     head, rest = text.split("{\n", 1)
@@ -128,10 +173,13 @@ def test_dev_stdout_redirected_to_a_file_gets_the_model_after_what_was_printed(t
     assert json.loads("{\n" + rest.removesuffix("model written to /dev/stdout\n"))["format"] == "symsbl-model"
 
 
-@pytest.mark.parametrize("path, message", [
-    ("", "path: expected a file path, received ''; name the file to write"),
-    (".", "path: expected a file path, received '.', which is a directory"),
-])
+@pytest.mark.parametrize(
+    "path, message",
+    [
+        ("", "path: expected a file path, received ''; name the file to write"),
+        (".", "path: expected a file path, received '.', which is a directory"),
+    ],
+)
 def test_an_empty_path_or_a_directory_is_refused(model, path, message):
     with pytest.raises(symsbl.DataError, match=exactly(message)):
         model.save(path)
@@ -143,9 +191,13 @@ def test_a_socket_is_refused(tmp_path, model):
     where = tmp_path / "sock"
     with socket.socket(socket.AF_UNIX) as server:
         server.bind(str(where))
-        with pytest.raises(symsbl.DataError, match=exactly(
+        with pytest.raises(
+            symsbl.DataError,
+            match=exactly(
                 f"path: expected a file, a FIFO or a character device, received {str(where)!r}, which is a socket; "
-                "choose a file name")):
+                "choose a file name"
+            ),
+        ):
             model.save(where)
 
 
@@ -164,15 +216,21 @@ def test_an_empty_json_path_is_refused_before_any_work(model_file, record_file, 
 def test_json_and_plot_on_one_file_are_refused_before_any_work(tmp_path, model_file, record_file, capsys):
     pytest.importorskip("matplotlib")
     report = tmp_path / "r.png"
-    code, out, err = _cli(["validate", str(model_file), str(record_file), "--json", str(report), "--plot",
-                           str(report)], capsys)
+    code, out, err = _cli(
+        ["validate", str(model_file), str(record_file), "--json", str(report), "--plot", str(report)], capsys
+    )
     assert (code, out) == (2, "") and not report.exists()
-    assert err == (f"symsbl validate: error: --plot: expected a file other than --json's, received {str(report)!r}, "
-                   "which --json writes too; give each output its own file\n")
+    assert err == (
+        f"symsbl validate: error: --plot: expected a file other than --json's, received {str(report)!r}, "
+        "which --json writes too; give each output its own file\n"
+    )
     link = tmp_path / "link.png"
     link.symlink_to(report.name)
-    code, _, err = _cli(["validate", str(model_file), str(record_file), "--json", str(report), "--plot", str(link)],
-                        capsys)
-    assert code == 2 and err == (f"symsbl validate: error: --plot: expected a file other than --json's, received "
-                                 f"{str(link)!r}, which --json writes too (as {str(report)!r}); give each output its "
-                                 "own file\n")
+    code, _, err = _cli(
+        ["validate", str(model_file), str(record_file), "--json", str(report), "--plot", str(link)], capsys
+    )
+    assert code == 2 and err == (
+        f"symsbl validate: error: --plot: expected a file other than --json's, received "
+        f"{str(link)!r}, which --json writes too (as {str(report)!r}); give each output its "
+        "own file\n"
+    )

@@ -63,8 +63,10 @@ def test_figure2_state_and_window(duffing_case, tmp_path):
     assert ax_b.get_xlim() == (0.1, 0.2)
     t = ax_b.lines[0].get_xdata()
     assert t.min() >= 0.1 and t.max() <= 0.2
-    np.testing.assert_array_equal(ax_b.lines[0].get_ydata(), validation.measured.column("x1")[
-        (validation.measured.t >= 0.1) & (validation.measured.t <= 0.2)])
+    np.testing.assert_array_equal(
+        ax_b.lines[0].get_ydata(),
+        validation.measured.column("x1")[(validation.measured.t >= 0.1) & (validation.measured.t <= 0.2)],
+    )
     fig.savefig(tmp_path / "figure2_x1.png", dpi=60)
 
 
@@ -92,9 +94,9 @@ def test_figure2_shows_the_equation_with_the_nonlinearity():
         return symsbl.Equation(lhs, terms, np.eye(len(terms)) * 0.01, 1e-6, 0.0)
 
     model = symsbl.IdentifiedModel(
-        states=(x1, x2, x3), inputs=(F,),
-        equations=(equation("x1", [x2]), equation("x2", [F, x1, x2, x3]),
-                   equation("x3", [x2, x2 * x3**2, x2 * x3])),
+        states=(x1, x2, x3),
+        inputs=(F,),
+        equations=(equation("x1", [x2]), equation("x2", [F, x1, x2, x3]), equation("x3", [x2, x2 * x3**2, x2 * x3])),
     )
     assert plots._equation_for(model, None).lhs == "x3"
     linear = dataclasses.replace(model, equations=model.equations[:2] + (equation("x3", [x2]),))
@@ -114,14 +116,18 @@ def test_figure2_without_band_and_diverged(duffing_case):
 
 def test_figure2_errors(duffing_case):
     _, model, validation = duffing_case
-    with pytest.raises(DataError,
-                       match=exactly("state: expected one of the model's states ['x1', 'x2'], received 'x3'")):
+    with pytest.raises(
+        DataError, match=exactly("state: expected one of the model's states ['x1', 'x2'], received 'x3'")
+    ):
         plots.figure2(model, validation, state="x3")
-    with pytest.raises(DataError, match=exactly("window: expected (t_start, t_stop) with t_start < t_stop in seconds, "
-                                                "received (0.3, 0.1)")):
+    with pytest.raises(
+        DataError,
+        match=exactly("window: expected (t_start, t_stop) with t_start < t_stop in seconds, received (0.3, 0.1)"),
+    ):
         plots.figure2(model, validation, window=(0.3, 0.1))
-    with pytest.raises(DataError, match=exactly("validation: expected a Validation from symsbl.validate_model, "
-                                                "received Trajectory")):
+    with pytest.raises(
+        DataError, match=exactly("validation: expected a Validation from symsbl.validate_model, received Trajectory")
+    ):
         plots.figure2(model, validation.measured)
 
 
@@ -158,9 +164,14 @@ def test_coefficient_uncertainty(duffing_case, tmp_path):
 def test_missing_matplotlib_says_how_to_install(duffing_case, monkeypatch):
     _, model, _ = duffing_case
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
-    with pytest.raises(ImportError, match=exactly("figures: expected matplotlib to be installed, received ImportError; "
-                                                  "pip install matplotlib (or pip install '.[plot]' from a clone of "
-                                                  "symsbl, pip install 'symsbl[plot]' from an index)")):
+    with pytest.raises(
+        ImportError,
+        match=exactly(
+            "figures: expected matplotlib to be installed, received ImportError; "
+            "pip install matplotlib (or pip install '.[plot]' from a clone of "
+            "symsbl, pip install 'symsbl[plot]' from an index)"
+        ),
+    ):
         plots.coefficient_uncertainty(model)
 
 
@@ -171,8 +182,9 @@ def test_cli_plot_without_matplotlib_is_one_line_not_a_traceback(duffing_case, t
     model.save(tmp_path / "model.json")
     symsbl.write_trajectory(validation.measured, tmp_path / "held.npz")
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
-    code = main(["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--plot",
-                 str(tmp_path / "f.png")])
+    code = main(
+        ["simulate", str(tmp_path / "model.json"), str(tmp_path / "held.npz"), "--plot", str(tmp_path / "f.png")]
+    )
     assert code == 2
     assert capsys.readouterr().err.strip() == (
         "symsbl simulate: error: figures: expected matplotlib to be installed, received ImportError; pip install "
@@ -239,9 +251,15 @@ def test_discrepancy_figure_equation_error_and_without_records(friction_case):
 
 def test_discrepancy_figure_errors(friction_case):
     report, held = friction_case
-    with pytest.raises(DataError, match=exactly('report: expected a DiscrepancyReport from symsbl.discrepancy with at '
-                                                'least one iteration, received IdentifiedModel')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "report: expected a DiscrepancyReport from symsbl.discrepancy with at "
+            "least one iteration, received IdentifiedModel"
+        ),
+    ):
         plots.discrepancy_figure(report.final, held)
-    with pytest.raises(DataError, match=exactly('heldout: expected a Trajectory (the held-out record), received '
-                                                'ndarray')):
+    with pytest.raises(
+        DataError, match=exactly("heldout: expected a Trajectory (the held-out record), received ndarray")
+    ):
         plots.discrepancy_figure(report, held.states)

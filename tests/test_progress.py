@@ -247,8 +247,9 @@ def test_streamed_statistics_report_the_samples_read(terminal, monkeypatch):
 def test_the_discrepancy_scan_reports_every_fit_or_stage(terminal, evidence, unit):
     stream = terminal()
     train = simulate(systems.linear(), time_grid(1.0, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
-    discrepancy(train, "x1: x2; x2: F, x1, x2", rule=symsbl.DecisionRule(n_bootstrap=1), max_iterations=1,
-                evidence=evidence)
+    discrepancy(
+        train, "x1: x2; x2: F, x1, x2", rule=symsbl.DecisionRule(n_bootstrap=1), max_iterations=1, evidence=evidence
+    )
     scans = [line for line in finished(stream.getvalue()) if line.startswith("discrepancy iteration 1")]
     assert len(scans) == 1
     done, total = map(int, re.search(rf": (\d+)/(\d+) {unit}", scans[0]).groups())
@@ -273,6 +274,7 @@ def test_cli_stays_silent_when_standard_error_is_not_a_terminal(tmp_path, capsys
     monkeypatch.setattr(progress, "DELAY", 0.0)
     train = simulate(systems.duffing(), time_grid(0.5, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
     symsbl.write_trajectory(train, tmp_path / "train.npz")
-    assert main(["identify", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F",
-                 "--library", "poly"]) == 0
+    assert (
+        main(["identify", str(tmp_path / "train.npz"), "--states", "x1,x2", "--inputs", "F", "--library", "poly"]) == 0
+    )
     assert capsys.readouterr().err == ""

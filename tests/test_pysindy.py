@@ -54,8 +54,9 @@ def test_sindy_with_the_rvm_finds_duffing_without_a_threshold(duffing_train):
 def test_the_wrapped_rvm_is_symsbls_rvm_on_pysindys_regression(duffing_train):
     """Each equation's coefficients are those of ``symsbl.RVM().fit`` on pysindy's features and
     finite-difference targets: the wrapper adds nothing and loses nothing."""
-    model = fitted(duffing_train, ps.PolynomialLibrary(degree=3), rvm_optimizer(prune_nats="bic"),
-                   ps.FiniteDifference())
+    model = fitted(
+        duffing_train, ps.PolynomialLibrary(degree=3), rvm_optimizer(prune_nats="bic"), ps.FiniteDifference()
+    )
     theta = np.asarray(model.optimizer.Theta_)
     x_dot = np.asarray(ps.FiniteDifference()(duffing_train.states, t=duffing_train.t))
     for k in range(2):
@@ -68,8 +69,9 @@ def test_the_wrapped_rvm_is_symsbls_rvm_on_pysindys_regression(duffing_train):
 
 def test_the_rvm_takes_pysindys_weak_form(duffing_train):
     np.random.seed(0)  # pysindy draws its subdomains from numpy's global generator
-    library = ps.WeakPDELibrary(function_library=ps.PolynomialLibrary(degree=3), spatiotemporal_grid=duffing_train.t,
-                                K=400, H_xt=[0.003], p=4)
+    library = ps.WeakPDELibrary(
+        function_library=ps.PolynomialLibrary(degree=3), spatiotemporal_grid=duffing_train.t, K=400, H_xt=[0.003], p=4
+    )
     x1, x2 = equations(fitted(duffing_train, library, rvm_optimizer()))
     assert set(x1) == {"x2"}
     assert {"x1", "x2", "F", "x1^3"} <= set(x2)

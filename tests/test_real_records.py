@@ -78,8 +78,9 @@ def test_a_noisy_force_cell_is_named_and_the_equation_error_reported_without_loo
     coefficient is within 4 posterior standard deviations."""
     exact = 0
     for seed in range(3):
-        train = record(COULOMB, seed, seconds=12.0, fs=1200.0, rms=20.0, band=(1.0, 15.0), noise=0.007,
-                       force_noise=0.01)
+        train = record(
+            COULOMB, seed, seconds=12.0, fs=1200.0, rms=20.0, band=(1.0, 15.0), noise=0.007, force_noise=0.01
+        )
         with warnings.catch_warnings(record=True) as caught:  # long Coulomb records are also hypersensitive
             warnings.simplefilter("always", symsbl.RefineWarning)
             model = symsbl.identify(train, library())
@@ -101,8 +102,10 @@ def _emps_parameters(model):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (SHARED / "DATA_EMPS.mat").exists(),
-                    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)")
+@pytest.mark.skipif(
+    not (SHARED / "DATA_EMPS.mat").exists(),
+    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)",
+)
 def test_emps_closed_loop_is_detected_and_the_inverse_model_reported():
     """EMPS, the way a new user runs it (position and a friction library, the default refinement): the input
     depends on past residuals, output error (biased in a closed loop: 3-7 % off) is not selected on, and the
@@ -125,8 +128,10 @@ def test_emps_closed_loop_is_detected_and_the_inverse_model_reported():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (SHARED / "DATA_EMPS_PULSES.mat").exists(),
-                    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)")
+@pytest.mark.skipif(
+    not (SHARED / "DATA_EMPS_PULSES.mat").exists(),
+    reason=f"the EMPS measurements are not at {SHARED} (../shared next to the repository)",
+)
 def test_emps_discrepancy_by_default_names_coulomb_friction_without_the_closed_loop_bias():
     """The discrepancy workflow from mass + viscous + offset with its defaults (output error had M, Fv, Fc 3.1,
     6.6 and 7.3 % off): the closed loop is named, the inverse model's evidence is used, Coulomb friction is the

@@ -26,8 +26,11 @@ def _forcing(t):
 def _rk4(rhs, x0, t, theta, substeps=4):
     """Classical RK4 in numpy, vectorised over the leading axis of ``theta`` (rows: parameter sets)."""
     theta = np.atleast_2d(theta)
-    x = np.broadcast_to(np.asarray(x0, float), (len(theta), len(np.atleast_1d(x0)))).copy() \
-        if np.ndim(x0) == 1 else np.array(x0, dtype=float)
+    x = (
+        np.broadcast_to(np.asarray(x0, float), (len(theta), len(np.atleast_1d(x0)))).copy()
+        if np.ndim(x0) == 1
+        else np.array(x0, dtype=float)
+    )
     out = np.empty((len(t), *x.shape))
     out[0] = x
     for k in range(len(t) - 1):
@@ -46,8 +49,9 @@ def _rk4(rhs, x0, t, theta, substeps=4):
 def _duffing_rhs(x, s, th):
     """``x1' = a x2``, ``x2' = b1 x1 + b2 x2 + b3 x1^3 + b4 F``; ``th`` columns ``a, b1, b2, b3, b4``."""
     u = _forcing(s)
-    return np.column_stack([th[:, 0] * x[:, 1],
-                            th[:, 1] * x[:, 0] + th[:, 2] * x[:, 1] + th[:, 3] * x[:, 0] ** 3 + th[:, 4] * u])
+    return np.column_stack(
+        [th[:, 0] * x[:, 1], th[:, 1] * x[:, 0] + th[:, 2] * x[:, 1] + th[:, 3] * x[:, 0] ** 3 + th[:, 4] * u]
+    )
 
 
 TRUTH = np.array([1.0, -400.0, -4.0, -4e6, 1.0])  # m = 1, k = 400 (3.2 Hz), c = 4, k3 = 4e6, about 30 % hardening
@@ -138,8 +142,9 @@ def test_laplace_evidence_matches_quadrature():
     x, u = symbols("x u")
     a0, b0 = -3.0, 2.0
     t = time_grid(3.0, 100)
-    clean = _rk4(lambda s, tt, th: th[:, :1] * s + th[:, 1:2] * _forcing(tt)[..., None] / 30,
-                 [0.2], t, [[a0, b0]], substeps=4)[:, 0, :]
+    clean = _rk4(
+        lambda s, tt, th: th[:, :1] * s + th[:, 1:2] * _forcing(tt)[..., None] / 30, [0.2], t, [[a0, b0]], substeps=4
+    )[:, 0, :]
     y = clean[:, 0] + np.random.default_rng(5).standard_normal(len(t)) * 0.02 * clean[:, 0].std()
     record = Trajectory(t, y[:, None], _forcing(t)[:, None] / 30, ("x",), ("u",))
     start = identify(record, symsbl.custom([x, u], [x, u]), refine=False)
@@ -156,18 +161,21 @@ def test_laplace_evidence_matches_quadrature():
     def rhs(s, tt, th):
         return th[:, :1] * s + th[:, 1:2] * _forcing(tt) / 30
 
-    forced = _rk4(rhs, np.zeros((len(theta), 1)), t, theta)[:, :, 0]            # x0 = 0
+    forced = _rk4(rhs, np.zeros((len(theta), 1)), t, theta)[:, :, 0]  # x0 = 0
     free = _rk4(lambda s, tt, th: th[:, :1] * s, np.ones((len(theta), 1)), t, theta)[:, :, 0]  # unit x0, no input
     r = y[:, None] - forced
     pp, pr, rr = (free**2).sum(0), (free * r).sum(0), (r**2).sum(0)
-    log_like = (0.5 * len(t) * np.log(w / (2 * np.pi)) - 0.5 * w * (rr - pr**2 / pp)
-                + 0.5 * np.log(2 * np.pi / (w * pp)))
-    log_prior = 0.5 * np.sum(np.log(alpha / (2 * np.pi))) - 0.5 * (alpha[0] * A.ravel()**2 + alpha[1] * B.ravel()**2)
+    log_like = 0.5 * len(t) * np.log(w / (2 * np.pi)) - 0.5 * w * (rr - pr**2 / pp) + 0.5 * np.log(2 * np.pi / (w * pp))
+    log_prior = 0.5 * np.sum(np.log(alpha / (2 * np.pi))) - 0.5 * (
+        alpha[0] * A.ravel() ** 2 + alpha[1] * B.ravel() ** 2
+    )
     f = log_like + log_prior
     cell = (grid[0][1] - grid[0][0]) * (grid[1][1] - grid[1][0])
     brute = f.max() + np.log(np.exp(f - f.max()).sum() * cell)
-    assert abs(model.metadata["refine"]["log_evidence"] - brute) < 0.5, (model.metadata["refine"]["log_evidence"],
-                                                                          brute)
+    assert abs(model.metadata["refine"]["log_evidence"] - brute) < 0.5, (
+        model.metadata["refine"]["log_evidence"],
+        brute,
+    )
 
 
 def test_model_reduction_scores_a_removal_as_a_refit_does():
@@ -183,12 +191,22 @@ def test_model_reduction_scores_a_removal_as_a_refit_does():
     engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=8), {"x2": [(x1**2, 0.0)]})
     alpha = np.array([1.0 / max(abs(c), 1e-3) ** 2 for c in engine.param.theta0[:5]] + [1e-6])
     every = np.arange(len(engine.positions))
-    first = fit(engine.passes, engine.param.theta0, alpha, engine.guess, active=every, mackay=False,
-                length0=engine.length0)
+    first = fit(
+        engine.passes, engine.param.theta0, alpha, engine.guess, active=every, mackay=False, length0=engine.length0
+    )
     spurious = len(every) - 1
     predicted = reduce_model(first.posterior, alpha, [spurious])[0]
-    refit = fit(engine.passes, engine.param.theta0, alpha, engine.guess, active=every[:-1], mackay=False,
-                update_noise=False, w=first.w, warm=first)
+    refit = fit(
+        engine.passes,
+        engine.param.theta0,
+        alpha,
+        engine.guess,
+        active=every[:-1],
+        mackay=False,
+        update_noise=False,
+        w=first.w,
+        warm=first,
+    )
     assert abs((refit.posterior.log_evidence - first.posterior.log_evidence) - predicted) < 0.5
 
 
@@ -202,8 +220,9 @@ def test_a_curvature_lost_to_round_off_is_a_simulation_error_not_an_overflow():
     H = np.array([[[1.0, 2.0], [2.0, 1.0]]])  # one segment: one coefficient, one initial state
     with pytest.raises(symsbl.SimulationError, match="curvature <= 0"):
         posterior(H, np.array([0.5]), np.array([1e-6]), 1.0, np.array([100]), np.array([1.0]))
-    good = posterior(np.array([[[4.0, 1.0], [1.0, 1.0]]]), np.array([0.5]), np.array([1e-6]), 1.0, np.array([100]),
-                     np.array([1.0]))
+    good = posterior(
+        np.array([[[4.0, 1.0], [1.0, 1.0]]]), np.array([0.5]), np.array([1e-6]), 1.0, np.array([100]), np.array([1.0])
+    )
     assert good.covariance[0, 0] == pytest.approx(1.0 / (4.0 - 1.0 + 1e-6))  # the Schur complement's inverse
 
 
@@ -212,18 +231,38 @@ def _chain_with_a_cubic_spring_to_ground():
     model with its exact coefficients."""
     x1, v1, x2, v2, F = symbols("x1 v1 x2 v2 F")
     m1, m2, k1, k2, c1, c2, k3 = 1.2, 0.7, 3e3, 2e3, 3.0, 2.0, 2e6
-    rhs = {"v1": {F: 1 / m1, x1: -(k1 + k2) / m1, v1: -(c1 + c2) / m1, x2: k2 / m1, v2: c2 / m1},
-           "v2": {x1: k2 / m2, v1: c2 / m2, x2: -k2 / m2, v2: -c2 / m2, x2**3: -k3 / m2}}
-    system = OdeSystem((x1, v1, x2, v2), (F,), (v1, sum(c * e for e, c in rhs["v1"].items()), v2,
-                                                 sum(c * e for e, c in rhs["v2"].items())), name="chain")
+    rhs = {
+        "v1": {F: 1 / m1, x1: -(k1 + k2) / m1, v1: -(c1 + c2) / m1, x2: k2 / m1, v2: c2 / m1},
+        "v2": {x1: k2 / m2, v1: c2 / m2, x2: -k2 / m2, v2: -c2 / m2, x2**3: -k3 / m2},
+    }
+    system = OdeSystem(
+        (x1, v1, x2, v2),
+        (F,),
+        (v1, sum(c * e for e, c in rhs["v1"].items()), v2, sum(c * e for e, c in rhs["v2"].items())),
+        name="chain",
+    )
 
     def equation(lhs, terms):
-        return symsbl.Equation(lhs, tuple(symsbl.TermEstimate(e, c, 0.0) for e, c in terms.items()),
-                               np.zeros((len(terms), len(terms))), 1.0, 0.0)
+        return symsbl.Equation(
+            lhs,
+            tuple(symsbl.TermEstimate(e, c, 0.0) for e, c in terms.items()),
+            np.zeros((len(terms), len(terms))),
+            1.0,
+            0.0,
+        )
 
-    model = symsbl.IdentifiedModel((x1, v1, x2, v2), (F,), (
-        symsbl.Equation.kinematic("x1", v1), equation("v1", rhs["v1"]), symsbl.Equation.kinematic("x2", v2),
-        equation("v2", rhs["v2"])), kinematics=(("x1", "v1"), ("x2", "v2")), measured=("x1", "x2"))
+    model = symsbl.IdentifiedModel(
+        (x1, v1, x2, v2),
+        (F,),
+        (
+            symsbl.Equation.kinematic("x1", v1),
+            equation("v1", rhs["v1"]),
+            symsbl.Equation.kinematic("x2", v2),
+            equation("v2", rhs["v2"]),
+        ),
+        kinematics=(("x1", "v1"), ("x2", "v2")),
+        measured=("x1", "x2"),
+    )
     return system, model
 
 
@@ -260,8 +299,7 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     X0 = engine.guess[starts]
     whole = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
     records = passes.records
-    step, _ = sensitivity_step(engine.param, engine.param.observe(records.outputs), records.n_outputs,
-                                engine.substeps)
+    step, _ = sensitivity_step(engine.param, engine.param.observe(records.outputs), records.n_outputs, engine.substeps)
     passes.chunk = 64
     passes._sens = _chunk(step, False, passes.records.n_total, 64)
     passes._sens_buffer = passes._sens.buffer()
@@ -303,8 +341,9 @@ def test_the_continuation_jumps_to_the_whole_record_and_reaches_the_same_optimum
     from symsbl._refine import solver
 
     x1, x2, F = symbols("x1 x2 F")
-    clean = simulate(_oscillator(1.0, 0.3, 2e3, 0.0), time_grid(30.0, 1024),
-                     inputs=Multisine(rms=2.0, f_min=1.0, f_max=20.0, seed=3))
+    clean = simulate(
+        _oscillator(1.0, 0.3, 2e3, 0.0), time_grid(30.0, 1024), inputs=Multisine(rms=2.0, f_min=1.0, f_max=20.0, seed=3)
+    )
     record = clean.with_noise(0.02, seed=4)
     start = identify(record, symsbl.custom([x2, x1, F], [x1, x2, F]), refine=False)
     jumped = refine(start, record, select=False)
@@ -331,8 +370,10 @@ def _scenario(system, fs, seconds, signal, held_signal, noise, library, **kw):
     held = simulate(system, time_grid(seconds / 2, fs), inputs=held_signal).with_noise(noise, seed=1)
     keep = kw.pop("keep", None)
     if keep:
-        train, held = (Trajectory(r.t, r.states[:, keep], r.inputs, tuple(r.state_names[i] for i in keep),
-                                  r.input_names) for r in (train, held))
+        train, held = (
+            Trajectory(r.t, r.states[:, keep], r.inputs, tuple(r.state_names[i] for i in keep), r.input_names)
+            for r in (train, held)
+        )
     ee = identify(train, library, refine=False, **kw)
     oe = refine(ee, train, library=library)  # what identify(train, library, **kw) returns by default
     return ee, oe, symsbl.compare_to_truth(oe, system), symsbl.validate_model(oe, held)
@@ -352,8 +393,14 @@ def test_a_strongly_hardening_duffing_is_refined_ten_times_closer_to_the_truth()
     system = _oscillator(m, 2 * 0.05 * np.sqrt(k * m), k, 3 * k / 0.02**2)
     x1, x2, F = symbols("x1 x2 F")
     ee, oe, truth, check = _scenario(
-        system, 16384, 2.0, Multisine(rms=40.0, f_min=1.0, f_max=40.0, seed=3, period=2.0),
-        Multisine(rms=40.0, f_min=1.0, f_max=40.0, seed=4, period=1.0), 0.01, symsbl.paper([x1, x2], [F], degree=3))
+        system,
+        16384,
+        2.0,
+        Multisine(rms=40.0, f_min=1.0, f_max=40.0, seed=3, period=2.0),
+        Multisine(rms=40.0, f_min=1.0, f_max=40.0, seed=4, period=1.0),
+        0.01,
+        symsbl.paper([x1, x2], [F], degree=3),
+    )
     _check(oe, truth, check)
     before = symsbl.compare_to_truth(ee, system)
     assert before.exact_support
@@ -366,8 +413,14 @@ def test_a_duffing_sampled_at_400_hz():
     x1, x2, F = symbols("x1 x2 F")
     with pytest.warns(symsbl.RefineWarning, match="the record is hypersensitive"):
         _, oe, truth, check = _scenario(
-            _oscillator(0.5, 3.0, 2e3, 2e7), 400, 10.0, Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=5, period=5.0),
-            Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=6, period=5.0), 0.01, symsbl.paper([x1, x2], [F], degree=3))
+            _oscillator(0.5, 3.0, 2e3, 2e7),
+            400,
+            10.0,
+            Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=5, period=5.0),
+            Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=6, period=5.0),
+            0.01,
+            symsbl.paper([x1, x2], [F], degree=3),
+        )
     _check(oe, truth, check)
     assert oe.metadata["refine"]["substeps"] > 1 and oe.metadata["refine"]["hypersensitive"]
 
@@ -375,13 +428,23 @@ def test_a_duffing_sampled_at_400_hz():
 def test_a_two_dof_chain_with_a_cubic_spring():
     y1, v1, y2, v2, F = symbols("y1 v1 y2 v2 F")
     m1, m2, k1, k2, c1, c2, kc = 1.5, 0.8, 4e3, 2.5e3, 4.0, 3.0, 5e7
-    rhs = (v1, (F - k1 * y1 - c1 * v1 - k2 * (y1 - y2) - c2 * (v1 - v2) - kc * (y1 - y2) ** 3) / m1,
-           v2, (-k2 * (y2 - y1) - c2 * (v2 - v1) - kc * (y2 - y1) ** 3) / m2)
+    rhs = (
+        v1,
+        (F - k1 * y1 - c1 * v1 - k2 * (y1 - y2) - c2 * (v1 - v2) - kc * (y1 - y2) ** 3) / m1,
+        v2,
+        (-k2 * (y2 - y1) - c2 * (v2 - v1) - kc * (y2 - y1) ** 3) / m2,
+    )
     system = OdeSystem((y1, v1, y2, v2), (F,), rhs, name="chain")
     library = symsbl.polynomial([y1, y2], 3) + symsbl.polynomial([v1, v2], 1, include_bias=False) + symsbl.inputs([F])
     _, oe, truth, check = _scenario(
-        system, 2048, 4.0, Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=7, period=4.0),
-        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=8, period=2.0), 0.01, library)
+        system,
+        2048,
+        4.0,
+        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=7, period=4.0),
+        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=8, period=2.0),
+        0.01,
+        library,
+    )
     _check(oe, truth, check)
 
 
@@ -413,17 +476,24 @@ def test_a_displacement_only_chain_finds_the_coupling_damping_the_equation_error
         X = solve_ivp(rhs, (t[0], t[-1]), [0.0] * 4, t_eval=t, method="DOP853", rtol=1e-10, atol=1e-13).y.T
         noise = np.random.default_rng(seed + 100).standard_normal((t.size, 2))
         noisy = X[:, :2] + 0.01 * X[:, :2].std(axis=0) * noise
-        return (Trajectory(t, X, force(t)[:, None], ("x1", "x2", "v1", "v2"), ("F",)),
-                Trajectory(t, noisy, force(t)[:, None], ("x1", "x2"), ("F",)))
+        return (
+            Trajectory(t, X, force(t)[:, None], ("x1", "x2", "v1", "v2"), ("F",)),
+            Trajectory(t, noisy, force(t)[:, None], ("x1", "x2"), ("F",)),
+        )
 
     _, train = record(12.0, 20.0, 1)
     clean_held, _ = record(4.0, 10.0, 2)
     x1, x2, v1, v2, F = symbols("x1 x2 v1 v2 F")
     coupling = k2 * (x2 - x1) + c2 * (v2 - v1) + kc * (x2 - x1) ** 3
-    truth = OdeSystem((x1, x2, v1, v2), (F,), (v1, v2, (F - k1 * x1 - c1 * v1 + coupling) / m1, -coupling / m2),
-                      name="chain")
-    oe = identify(train, symsbl.paper([x1, x2, v1, v2], [F], 3), states=["x1", "x2", "v1", "v2"],
-                  kinematics={"x1": "v1", "x2": "v2"})
+    truth = OdeSystem(
+        (x1, x2, v1, v2), (F,), (v1, v2, (F - k1 * x1 - c1 * v1 + coupling) / m1, -coupling / m2), name="chain"
+    )
+    oe = identify(
+        train,
+        symsbl.paper([x1, x2, v1, v2], [F], 3),
+        states=["x1", "x2", "v1", "v2"],
+        kinematics={"x1": "v1", "x2": "v2"},
+    )
     _check(oe, symsbl.compare_to_truth(oe, truth), symsbl.validate_model(oe, clean_held), heldout_tol=0.005)
 
 
@@ -441,9 +511,14 @@ def test_van_der_pol_on_its_limit_cycle():
 def test_bouc_wen_of_order_three_with_the_hysteretic_state_measured():
     system = symsbl.systems.bouc_wen(A=5000.0, n=3, a=2.0, b=-1.0, m=1.5, c=15.0, k=8e3)
     _, oe, truth, check = _scenario(
-        system, 4096, 3.0, Multisine(rms=40.0, f_min=1.0, f_max=30.0, seed=9, period=3.0),
-        Multisine(rms=40.0, f_min=1.0, f_max=30.0, seed=10, period=1.5), 0.005,
-        symsbl.paper(system.states, system.inputs, degree=4))
+        system,
+        4096,
+        3.0,
+        Multisine(rms=40.0, f_min=1.0, f_max=30.0, seed=9, period=3.0),
+        Multisine(rms=40.0, f_min=1.0, f_max=30.0, seed=10, period=1.5),
+        0.005,
+        symsbl.paper(system.states, system.inputs, degree=4),
+    )
     _check(oe, truth, check)
 
 
@@ -453,9 +528,17 @@ def test_a_displacement_only_duffing():
     x1, x2, F = symbols("x1 x2 F")
     system = _oscillator(1.2, 20.0, 6e3, 4e8)
     ee, oe, truth, check = _scenario(
-        system, 4096, 3.0, Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=11, period=3.0),
-        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=12, period=1.5), 0.01, symsbl.paper([x1, x2], [F], degree=3),
-        keep=[0], states=["x1", "x2"], kinematics={"x1": "x2"})
+        system,
+        4096,
+        3.0,
+        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=11, period=3.0),
+        Multisine(rms=30.0, f_min=1.0, f_max=40.0, seed=12, period=1.5),
+        0.01,
+        symsbl.paper([x1, x2], [F], degree=3),
+        keep=[0],
+        states=["x1", "x2"],
+        kinematics={"x1": "x2"},
+    )
     _check(oe, truth, check)
     assert oe.measured == ("x1",) and oe.kinematics == (("x1", "x2"),)
     assert oe.equation("x1").fixed and oe.equation("x1").names == ["x2"]
@@ -469,9 +552,17 @@ def test_a_displacement_only_record_with_light_damping_finds_the_term_the_equati
     x1, x2, F = symbols("x1 x2 F")
     system = OdeSystem((x1, x2), (F,), (x2, (F - 0.8 * x2 - 250 * x1 - 5 * x2 * ca.fabs(x2)) / 3.0), name="drag")
     ee, oe, truth, check = _scenario(
-        system, 500, 20.0, Multisine(rms=5.0, f_min=0.2, f_max=5.0, seed=2, period=20.0),
-        Multisine(rms=5.0, f_min=0.2, f_max=5.0, seed=3, period=10.0), 0.01, symsbl.paper([x1, x2], [F], degree=3),
-        keep=[0], states=["x1", "x2"], kinematics={"x1": "x2"})
+        system,
+        500,
+        20.0,
+        Multisine(rms=5.0, f_min=0.2, f_max=5.0, seed=2, period=20.0),
+        Multisine(rms=5.0, f_min=0.2, f_max=5.0, seed=3, period=10.0),
+        0.01,
+        symsbl.paper([x1, x2], [F], degree=3),
+        keep=[0],
+        states=["x1", "x2"],
+        kinematics={"x1": "x2"},
+    )
     assert "x2" not in ee.equation("x2").names  # the equation error alone misses it (the reason for the screen)
     assert "x2" in oe.metadata["refine"]["screened"]["x2"]
     _check(oe, truth, check)
@@ -504,16 +595,23 @@ def test_a_look_alike_the_equation_error_preferred_is_swapped_for_the_true_term(
     x1, x2, F = symbols("x1 x2 F")
     system = _oscillator(0.9, 1.5, 6e3, 8e7)
     library = symsbl.paper([x1, x2], [F], degree=3)
-    record = simulate(system, time_grid(6.0, 1000), inputs=Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=21,
-                                                                      period=6.0)).with_noise(0.015, seed=3)
+    record = simulate(
+        system, time_grid(6.0, 1000), inputs=Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=21, period=6.0)
+    ).with_noise(0.015, seed=3)
     only_x1 = Trajectory(record.t, record.states[:, :1], record.inputs, ("x1",), ("F",))
     ee = identify(only_x1, library, refine=False, states=["x1", "x2"], kinematics={"x1": "x2"})
     eq = ee.equation("x2")
     keep = tuple(t for t in eq.terms if t.name in ("F", "x1", "x1**3"))
     assert len(keep) == 3, str(ee)
     wrong = symsbl.TermEstimate(expr=ca.sin(x2), coef=-1.5 / 0.9, std=np.nan, alpha=0.9**2 / 1.5**2)
-    start = dataclasses.replace(ee, equations=(ee.equations[0], dataclasses.replace(
-        eq, terms=keep + (wrong,), covariance=np.zeros((4, 4)), runners_up=())), joint_covariance=None)
+    start = dataclasses.replace(
+        ee,
+        equations=(
+            ee.equations[0],
+            dataclasses.replace(eq, terms=keep + (wrong,), covariance=np.zeros((4, 4)), runners_up=()),
+        ),
+        joint_covariance=None,
+    )
     with pytest.warns(symsbl.RefineWarning, match="the record is hypersensitive"):  # 32 % from 1e-3 of c over 6 s
         oe = refine(start, only_x1, library=library)
     truth = symsbl.compare_to_truth(oe, system)
@@ -565,8 +663,15 @@ def test_every_runner_up_is_tried_however_many_alternatives_the_terms_have():
         phases = np.random.default_rng(seed).uniform(0, 2 * np.pi, freqs.size)
         u = np.sin(2 * np.pi * freqs[:, None] * t + phases[:, None]).sum(axis=0)
         force = CubicSpline(t, rms * u / u.std())
-        X = solve_ivp(lambda s, z: [z[1], (force(s) - c * z[1] - k * z[0] - k2 * z[0] ** 2 - k3 * z[0] ** 3) / m],
-                      (0.0, t[-1]), [0.0, 0.0], t_eval=t, method="DOP853", rtol=1e-10, atol=1e-13).y.T
+        X = solve_ivp(
+            lambda s, z: [z[1], (force(s) - c * z[1] - k * z[0] - k2 * z[0] ** 2 - k3 * z[0] ** 3) / m],
+            (0.0, t[-1]),
+            [0.0, 0.0],
+            t_eval=t,
+            method="DOP853",
+            rtol=1e-10,
+            atol=1e-13,
+        ).y.T
         noisy = X + 0.02 * X.std(axis=0) * np.random.default_rng(seed + 7).standard_normal(X.shape)
         return [Trajectory(t, s, force(t)[:, None], ("x", "v"), ("F",)) for s in (X, noisy)]
 
@@ -648,8 +753,14 @@ def test_a_constant_with_look_alikes_gets_a_prior():
     x1, x2, F = symbols("x1 x2 F")
     eq = model.equation("x2")
     offset = symsbl.TermEstimate(expr=ca.SX(1.0), coef=0.0, std=np.nan, alpha=1.0, alternatives=("cos(x1)",))
-    start = dataclasses.replace(model, equations=(model.equations[0], dataclasses.replace(
-        eq, terms=eq.terms + (offset,), covariance=np.zeros((len(eq.terms) + 1,) * 2))), joint_covariance=None)
+    start = dataclasses.replace(
+        model,
+        equations=(
+            model.equations[0],
+            dataclasses.replace(eq, terms=eq.terms + (offset,), covariance=np.zeros((len(eq.terms) + 1,) * 2)),
+        ),
+        joint_covariance=None,
+    )
     library = symsbl.polynomial([x1, x2], 3) + symsbl.elementwise([x1], ["cos"]) + symsbl.inputs([F])
     refined = refine(start, record, library=library)
     assert refined.fit is symsbl.FitMethod.OUTPUT_ERROR
@@ -665,8 +776,12 @@ def test_a_model_that_diverges_on_the_record_falls_back_to_the_equation_error_wi
     model, record = _refined(7)
     eq = model.equation("x2")
     terms = tuple(dataclasses.replace(t, coef=1e12) if t.name == "x1**3" else t for t in eq.terms)
-    bad = dataclasses.replace(model, equations=(model.equations[0], dataclasses.replace(eq, terms=terms)),
-                              fit=symsbl.FitMethod.EQUATION_ERROR, joint_covariance=None)
+    bad = dataclasses.replace(
+        model,
+        equations=(model.equations[0], dataclasses.replace(eq, terms=terms)),
+        fit=symsbl.FitMethod.EQUATION_ERROR,
+        joint_covariance=None,
+    )
     with pytest.raises(symsbl.SimulationError, match="the model diverges on this record") as info:
         refine(bad, record)
     assert "\n" not in str(info.value)
@@ -689,13 +804,15 @@ def test_an_input_held_between_samples_is_refined_as_held():
     clean = simulate(system, fine, inputs=symsbl.Sampled(fine, levels[np.arange(fine.size) // 1600], kind="hold"))
     keep = np.arange(0, fine.size, 16)
     record = Trajectory(clean.t[keep], clean.states[keep], clean.inputs[keep], ("x1", "x2"), ("F",)).with_noise(
-        0.01, seed=1)
+        0.01, seed=1
+    )
     library = symsbl.paper([x1, x2], [F], degree=3)
     errors = {}
     for kind in ("cubic", "hold"):
         if kind == "cubic":  # the smoothed steps leave a residual that depends on the input, and refinement says so
-            with pytest.warns(symsbl.RefineWarning,
-                              match=r"residual depends on the input|segments of at most|output error is biased"):
+            with pytest.warns(
+                symsbl.RefineWarning, match=r"residual depends on the input|segments of at most|output error is biased"
+            ):
                 model = identify(record, library, refine_options={"interpolation": kind})
         else:
             model = identify(record, library, refine_options={"interpolation": kind})

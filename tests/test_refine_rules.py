@@ -23,8 +23,15 @@ from symsbl._simulation.ode import OdeSystem
 
 X, V, F = symsbl.symbols("x v F")
 #: Look-alikes of a damping force at velocities below 1 m/s.
-LOOK_ALIKES = {"v": V, "sin(v)": ca.sin(V), "v**3": V**3, "v*Abs(v)": V * ca.fabs(V), "tanh(v)": ca.tanh(V),
-               "atan(v)": ca.atan(V), "sinh(v)": ca.sinh(V)}
+LOOK_ALIKES = {
+    "v": V,
+    "sin(v)": ca.sin(V),
+    "v**3": V**3,
+    "v*Abs(v)": V * ca.fabs(V),
+    "tanh(v)": ca.tanh(V),
+    "atan(v)": ca.atan(V),
+    "sinh(v)": ca.sinh(V),
+}
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +39,12 @@ def light():
     """Displacement only, a lightly damped hardening oscillator: 0.9 x'' + 1.5 x' + 6e3 x + 8e7 x^3 = F (1.1 %
     of critical), 1-30 Hz at 1 kHz, 2 s, 1.5 % noise."""
     system = OdeSystem((X, V), (F,), (V, (F - 1.5 * V - 6e3 * X - 8e7 * X**3) / 0.9), name="light")
-    record = symsbl.simulate(system, symsbl.time_grid(2.0, 1000), substeps=8,
-                             inputs=symsbl.Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=21, period=2.0))
+    record = symsbl.simulate(
+        system,
+        symsbl.time_grid(2.0, 1000),
+        substeps=8,
+        inputs=symsbl.Multisine(rms=10.0, f_min=1.0, f_max=30.0, seed=21, period=2.0),
+    )
     record = record.with_noise(0.015, seed=3)
     only_x = symsbl.Trajectory(record.t, record.states[:, :1], record.inputs, ("x",), ("F",))
     library = symsbl.paper([X, V], [F], degree=3)
@@ -99,12 +110,14 @@ def chaotic(tmp_path_factory):
     change = np.sqrt(np.mean((moved.states[:, 0] - clean.states[:, 0]) ** 2)) / np.std(clean.states[:, 0])
     assert change > 0.2  # the record is hypersensitive
     x1, x2, F = symsbl.symbols("x1 x2 F")
-    with pytest.warns(symsbl.RefineWarning, match=r"^output-error refinement: the record is hypersensitive "
-                                                  r"\(chaotic-like\): the model amplifies a state error 10000-fold "
-                                                  r"within \d+ samples \([\d.]+ s\), so it was fitted on segments of "
-                                                  r"\d+ samples"):
-        model = symsbl.identify(train, symsbl.paper([x1, x2], [F], degree=3), states=["x1", "x2"],
-                                kinematics="x1:x2")
+    with pytest.warns(
+        symsbl.RefineWarning,
+        match=r"^output-error refinement: the record is hypersensitive "
+        r"\(chaotic-like\): the model amplifies a state error 10000-fold "
+        r"within \d+ samples \([\d.]+ s\), so it was fitted on segments of "
+        r"\d+ samples",
+    ):
+        model = symsbl.identify(train, symsbl.paper([x1, x2], [F], degree=3), states=["x1", "x2"], kinematics="x1:x2")
     d = tmp_path_factory.mktemp("chaotic")
     model.save(d / "model.json")
     _, held = _duffing(seed=5)
@@ -128,8 +141,9 @@ def test_a_hypersensitive_record_is_validated_over_short_horizons(chaotic, capsy
     assert "hypersensitive record (chaotic-like)" in result.message
     code = main(["validate", str(d / "model.json"), str(d / "held.csv"), "--json", str(d / "errors.json"), "--quiet"])
     out = capsys.readouterr().out
-    assert code == 0 and out.splitlines()[-1].startswith("hypersensitive record (chaotic-like): the model amplifies a "
-                                                         "state error 10^4-fold within ")
+    assert code == 0 and out.splitlines()[-1].startswith(
+        "hypersensitive record (chaotic-like): the model amplifies a state error 10^4-fold within "
+    )
     doc = json.loads((d / "errors.json").read_text())
     assert doc["horizon"] == pytest.approx(result.horizon) and doc["short_nrmse"]["x1"] < 0.01
 
@@ -143,8 +157,10 @@ def test_the_discrepancy_workflow_says_a_model_is_badly_wrong_when_a_hypersensit
     (step,) = report.steps
     assert step.decision == "badly wrong, the record cannot tell why" and not report.added
     assert report.verdict.startswith("the model is badly wrong (its residual stands at ")
-    assert "the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold within" \
+    assert (
+        "the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold within"
         in report.verdict
+    )
 
 
 def test_the_validated_choice_takes_a_richer_structure_only_when_every_fold_says_so():

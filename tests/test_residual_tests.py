@@ -34,7 +34,7 @@ def _ar1(a: float, w: np.ndarray) -> np.ndarray:
 
 def _delayed(x: np.ndarray, lag: int) -> np.ndarray:
     """``x_{t - lag}`` (zero before the start)."""
-    return np.concatenate([np.zeros(lag), x[:x.size - lag]])
+    return np.concatenate([np.zeros(lag), x[: x.size - lag]])
 
 
 def _autocovariance(x: np.ndarray, k: int) -> float:
@@ -79,8 +79,10 @@ def test_cross_correlation_equals_hand_formula_and_bartlett_band():
     for tau in (-7, -1, 0, 2, 5):
         hand = sum(ec[t] * uc[t - tau] for t in range(max(tau, 0), n + min(tau, 0))) / n / scale
         assert rho[lags + tau] == pytest.approx(hand, rel=1e-10)
-    p = sum((1 - abs(k) / (lags + 1)) * _autocovariance(e, abs(k)) * _autocovariance(u, abs(k))
-            for k in range(-lags, lags + 1))
+    p = sum(
+        (1 - abs(k) / (lags + 1)) * _autocovariance(e, abs(k)) * _autocovariance(u, abs(k))
+        for k in range(-lags, lags + 1)
+    )
     np.testing.assert_allclose(band, np.sqrt(p / (n * scale**2)), rtol=1e-10)
 
 
@@ -113,7 +115,7 @@ def test_prewhitening_recovers_the_filter_of_an_ar1_input():
     f = prewhitening(u)
     assert f.size == 2 and f[0] == 1.0
     assert abs(f[1] + a) < 4 * np.sqrt((1 - a**2) / n), f
-    assert ljung_box(scipy.signal.lfilter(f, [1.0], u)[f.size:])[1] > 0.01
+    assert ljung_box(scipy.signal.lfilter(f, [1.0], u)[f.size :])[1] > 0.01
     np.testing.assert_array_equal(prewhitening(rng.standard_normal(n)), [1.0])
 
 
@@ -194,8 +196,7 @@ def test_predictable_share_of_white_noise_and_ar1():
     n, lags = 2000, 25
     share = np.mean([predictable(np.random.default_rng(40 + s).standard_normal(n), lags) for s in range(5)])
     assert 0.5 < share / (lags / (n - lags)) < 2.0, share
-    assert predictable(_ar1(0.8, np.random.default_rng(6).standard_normal(5000)), lags) == pytest.approx(0.64,
-                                                                                                         abs=0.03)
+    assert predictable(_ar1(0.8, np.random.default_rng(6).standard_normal(5000)), lags) == pytest.approx(0.64, abs=0.03)
 
 
 def test_effective_fraction_of_white_noise_and_ar1():

@@ -82,8 +82,9 @@ def pendulum(g=9.81, length=1.0, c=0.5) -> OdeSystem:
 @cache
 def _pendulum_record(rms: float, seed: int):
     # 20 s at 1 kHz (the natural frequency is 0.5 Hz); a multisine of period 20 s over 0.1-2 Hz.
-    return simulate(pendulum(), time_grid(20.0, 1000.0),
-                    inputs=Multisine(rms=rms, f_min=0.1, f_max=2.0, seed=seed, period=20.0))
+    return simulate(
+        pendulum(), time_grid(20.0, 1000.0), inputs=Multisine(rms=rms, f_min=0.1, f_max=2.0, seed=seed, period=20.0)
+    )
 
 
 @pytest.mark.slow
@@ -189,8 +190,14 @@ def free_duffing(c=20.0, k=1e4, k3=1e9) -> OdeSystem:
     """The paper's Duffing oscillator without an input: ``x1'' + c x1' + k x1 + k3 x1**3 = 0``."""
     x1, x2 = symbols("x1 x2")
     pc, pk, pk3 = symbols("c k k3")
-    return OdeSystem(states=(x1, x2), inputs=(), rhs=(x2, -pc * x2 - pk * x1 - pk3 * x1**3),
-                     parameters=(pc, pk, pk3), parameter_values=(c, k, k3), name="free_duffing")
+    return OdeSystem(
+        states=(x1, x2),
+        inputs=(),
+        rhs=(x2, -pc * x2 - pk * x1 - pk3 * x1**3),
+        parameters=(pc, pk, pk3),
+        parameter_values=(c, k, k3),
+        name="free_duffing",
+    )
 
 
 @pytest.mark.slow
@@ -227,7 +234,8 @@ def test_lorenz_with_polynomial_library():
     for all (largest seen 2.3 %, the -y of y', 0.08 % of its equation's variance)."""
     system = systems.lorenz()
     assert dict(zip(system.parameter_names, system.parameter_values)) == pytest.approx(
-        {"sigma": 10.0, "rho": 28.0, "beta": 8.0 / 3.0})
+        {"sigma": 10.0, "rho": 28.0, "beta": 8.0 / 3.0}
+    )
     clean = simulate(system, time_grid(10.0, 1000.0), x0=[-8.0, 7.0, 27.0])
     assert np.all(np.ptp(clean.states, axis=0) > 30)
     library = polynomial(system.states, 3)
@@ -290,8 +298,9 @@ def test_weak_window_is_set_by_the_signal_not_the_noise():
 
 def _linear_at_five_percent(derivative):
     system, clean = _paper_record("linear")
-    model = identify(clean.with_noise(0.05, seed=0), paper(system.states, system.inputs, degree=6),
-                     derivative=derivative)
+    model = identify(
+        clean.with_noise(0.05, seed=0), paper(system.states, system.inputs, degree=6), derivative=derivative
+    )
     return compare_to_truth(model, system, clean), model
 
 

@@ -159,7 +159,7 @@ def test_from_chunks_equals_from_arrays_and_serves_several_targets():
     D, y, _ = monomial_problem(5000, 0)
     Y = np.column_stack([y, D[:, 3] - 2.0 * D[:, 9]])
     whole = GramStats.from_arrays(D, Y)
-    chunked = GramStats.from_chunks((D[s:s + 777], Y[s:s + 777]) for s in range(0, 5000, 777))
+    chunked = GramStats.from_chunks((D[s : s + 777], Y[s : s + 777]) for s in range(0, 5000, 777))
     for name in ("gram", "dty", "yty", "y_sum"):
         np.testing.assert_allclose(getattr(chunked, name), getattr(whole, name), rtol=1e-12, atol=1e-9)
     assert chunked.n_samples == 5000
@@ -187,7 +187,7 @@ def test_qr_statistics_resolve_a_residual_of_1e9_of_the_signal():
     signal = D[:, [1, 2, 5, 8]] @ [1.0, -2.0, 0.5, 3.0]
     noise = 1e-9 * signal.std()
     y = signal + noise * rng.standard_normal(20000)
-    chunks = [(D[s:s + 3000], y[s:s + 3000]) for s in range(0, 20000, 3000)]
+    chunks = [(D[s : s + 3000], y[s : s + 3000]) for s in range(0, 20000, 3000)]
     for stats in (GramStats.from_arrays(D, y, qr=True), GramStats.from_chunks(chunks, qr=True)):
         model = RVM(noise_floor=0).fit_stats(stats)
         assert model.noise_var_ == pytest.approx(noise**2, rel=0.05)
@@ -218,8 +218,13 @@ def test_blocked_rank_k_gram_equals_the_general_product(layout):
 
 def test_fit_gives_the_model_of_the_plain_statistics():
     D, y, _ = monomial_problem(50_000, 3)
-    plain = GramStats(np.einsum("ni,nj->ij", D, D), np.einsum("ni,n->i", D, y)[:, None], np.array([y @ y]),
-                      np.array([y.sum()]), len(y))
+    plain = GramStats(
+        np.einsum("ni,nj->ij", D, D),
+        np.einsum("ni,n->i", D, y)[:, None],
+        np.array([y @ y]),
+        np.array([y.sum()]),
+        len(y),
+    )
     for prune in (None, "ebic"):
         fast, ref = RVM(prune_nats=prune).fit(D, y), RVM(prune_nats=prune).fit_stats(plain)
         np.testing.assert_array_equal(fast.active_, ref.active_)
@@ -331,22 +336,51 @@ def test_options_free_fixed_noise_floor_and_verbose(capsys):
 @pytest.mark.parametrize(
     "X, y, match",
     [
-        (np.ones(10), np.ones(10), exactly('X: expected a 2-D array, received shape (10,); reshape it (e.g. '
-                                           'X.reshape(-1, 1) for one column)')),
-        (np.ones((10, 2)), np.ones((10, 2)), exactly('y: expected a 1-D array, received shape (10, 2); reshape it '
-                                                     '(e.g. y.reshape(-1, 1) for one column)')),
-        (np.ones((10, 2)), np.ones(9), exactly('y: expected as many rows as X (10), received 9 rows')),
-        (np.where(np.eye(10, 2) > 0, np.nan, 1.0), np.ones(10), exactly('X: expected finite values, received a '
-                                                                        'non-finite value at index (0, 0); remove or '
-                                                                        'impute NaN/inf rows first')),
-        (np.ones((10, 2)), np.r_[np.ones(9), np.inf], exactly('y: expected finite values, received a non-finite value '
-                                                              'at index (9, 0); remove or impute NaN/inf rows first')),
-        (np.ones((1, 2)), np.ones(1), exactly('rows: expected more regression rows than candidate terms (2), received '
-                                              '1 rows from X; use longer records, fewer candidate terms (a lower '
-                                              'degree) or a derivative strategy with more rows')),
-        (np.ones((10, 0)), np.ones(10), exactly('stats: expected at least one dictionary column, received none')),
-        (np.ones((10, 2)), np.zeros(10), exactly('y: expected a target that is not identically zero, received all '
-                                                 'zeros; there is nothing to fit')),
+        (
+            np.ones(10),
+            np.ones(10),
+            exactly("X: expected a 2-D array, received shape (10,); reshape it (e.g. X.reshape(-1, 1) for one column)"),
+        ),
+        (
+            np.ones((10, 2)),
+            np.ones((10, 2)),
+            exactly(
+                "y: expected a 1-D array, received shape (10, 2); reshape it (e.g. y.reshape(-1, 1) for one column)"
+            ),
+        ),
+        (np.ones((10, 2)), np.ones(9), exactly("y: expected as many rows as X (10), received 9 rows")),
+        (
+            np.where(np.eye(10, 2) > 0, np.nan, 1.0),
+            np.ones(10),
+            exactly(
+                "X: expected finite values, received a "
+                "non-finite value at index (0, 0); remove or "
+                "impute NaN/inf rows first"
+            ),
+        ),
+        (
+            np.ones((10, 2)),
+            np.r_[np.ones(9), np.inf],
+            exactly(
+                "y: expected finite values, received a non-finite value "
+                "at index (9, 0); remove or impute NaN/inf rows first"
+            ),
+        ),
+        (
+            np.ones((1, 2)),
+            np.ones(1),
+            exactly(
+                "rows: expected more regression rows than candidate terms (2), received "
+                "1 rows from X; use longer records, fewer candidate terms (a lower "
+                "degree) or a derivative strategy with more rows"
+            ),
+        ),
+        (np.ones((10, 0)), np.ones(10), exactly("stats: expected at least one dictionary column, received none")),
+        (
+            np.ones((10, 2)),
+            np.zeros(10),
+            exactly("y: expected a target that is not identically zero, received all zeros; there is nothing to fit"),
+        ),
     ],
 )
 def test_fit_rejects_bad_data(X, y, match):
@@ -358,15 +392,17 @@ def test_fit_rejects_bad_data(X, y, match):
     "params, match",
     [
         ({"prune_nats": "aic"}, exactly("prune_nats: expected one of 'bic', 'ebic', received 'aic'")),
-        ({"prune_nats": -1.0}, exactly("prune_nats: expected a finite number >= 0.0, None, 'bic', 'ebic', received "
-                                       "-1.0")),
-        ({"noise_var": 0.0}, exactly('noise_var: expected a finite number > 0.0, None, received 0.0')),
-        ({"noise_floor": np.nan}, exactly('noise_floor: expected a finite number >= 0.0, received nan')),
-        ({"tol": -1}, exactly('tol: expected a finite number > 0.0, received -1')),
-        ({"max_iter": 0}, exactly('max_iter: expected an integer >= 1, received 0')),
+        (
+            {"prune_nats": -1.0},
+            exactly("prune_nats: expected a finite number >= 0.0, None, 'bic', 'ebic', received -1.0"),
+        ),
+        ({"noise_var": 0.0}, exactly("noise_var: expected a finite number > 0.0, None, received 0.0")),
+        ({"noise_floor": np.nan}, exactly("noise_floor: expected a finite number >= 0.0, received nan")),
+        ({"tol": -1}, exactly("tol: expected a finite number > 0.0, received -1")),
+        ({"max_iter": 0}, exactly("max_iter: expected an integer >= 1, received 0")),
         ({"verbose": "yes"}, exactly("verbose: expected True or False, received 'yes'")),
-        ({"free": [12]}, exactly('free: expected an integer in [0, 9], received 12')),
-        ({"free": [1, 1]}, exactly('free: expected distinct column indices, received [1, 1]')),
+        ({"free": [12]}, exactly("free: expected an integer in [0, 9], received 12")),
+        ({"free": [1, 1]}, exactly("free: expected distinct column indices, received [1, 1]")),
     ],
 )
 def test_fit_rejects_bad_options(params, match):
@@ -378,22 +414,28 @@ def test_fit_rejects_bad_options(params, match):
 def test_other_user_errors():
     X, y = small_problem()
     stats = GramStats.from_arrays(X, y)
-    with pytest.raises(ValueError, match=exactly('target: expected an integer in [0, 0], received 1')):
+    with pytest.raises(ValueError, match=exactly("target: expected an integer in [0, 0], received 1")):
         RVM().fit_stats(stats, target=1)
     with pytest.raises(ParameterError, match=exactly("stats: expected a GramStats, received tuple")):
         RVM().fit_stats((X.T @ X, X.T @ y))
-    with pytest.raises(ParameterError, match=exactly("RVM: expected a fitted estimator, received one not fitted yet; "
-                                                     "call fit(X, y) or fit_stats(stats) first")):
+    with pytest.raises(
+        ParameterError,
+        match=exactly(
+            "RVM: expected a fitted estimator, received one not fitted yet; call fit(X, y) or fit_stats(stats) first"
+        ),
+    ):
         RVM().predict(X)
     with pytest.raises(DataError, match=exactly("X: expected 10 columns (as in fit), received 3")):
         RVM().fit(X, y).predict(X[:, :3])
-    with pytest.raises(DataError,
-                       match=exactly("chunks: expected at least one (D_chunk, Y_chunk) pair, received none")):
+    with pytest.raises(
+        DataError, match=exactly("chunks: expected at least one (D_chunk, Y_chunk) pair, received none")
+    ):
         GramStats.from_chunks([])
     with pytest.raises(ParameterError, match=exactly("factor: expected a finite number > 0.0, received -1")):
         stats.scaled(-1)
-    with pytest.raises(DataError, match=exactly("other: expected GramStats of (10, 1) (n_terms, n_targets), "
-                                                "received (3, 1)")):
+    with pytest.raises(
+        DataError, match=exactly("other: expected GramStats of (10, 1) (n_terms, n_targets), received (3, 1)")
+    ):
         stats + GramStats.from_arrays(X[:, :3], y)
     with pytest.raises(ParameterError, match=r"^set_params: expected parameter names among \[.*\], received 'alpha'$"):
         RVM().set_params(alpha=1.0)

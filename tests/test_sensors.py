@@ -55,12 +55,22 @@ def test_integrating_a_biased_accelerometer_gives_the_closed_form_motion():
 def test_kinematics_name_an_acceleration_column_as_a_third_member():
     assert kinematic_triples("x1:v1:a1, x2:v2", ["x1", "v1", "x2", "v2"]) == (("x1", "v1", "a1"), ("x2", "v2", None))
     assert kinematic_triples({"x": ("v", "acc")}, ["x", "v"]) == (("x", "v", "acc"),)
-    with pytest.raises(DataError, match=exactly("--kinematics: expected position:velocity pairs such as x1:x2,x3:x4, "
-                                                "each with an acceleration column as a third name if one is measured "
-                                                "(x1:x2:a1), received 'x:v:a:j'")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "--kinematics: expected position:velocity pairs such as x1:x2,x3:x4, "
+            "each with an acceleration column as a third name if one is measured "
+            "(x1:x2:a1), received 'x:v:a:j'"
+        ),
+    ):
         kinematic_triples("x:v:a:j", ["x", "v"])
-    with pytest.raises(DataError, match=exactly("kinematics: expected an acceleration column named unlike the states "
-                                                "and the other accelerations, received x:v:v")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "kinematics: expected an acceleration column named unlike the states "
+            "and the other accelerations, received x:v:v"
+        ),
+    ):
         kinematic_triples("x:v:v", ["x", "v"])
 
 
@@ -69,8 +79,7 @@ def test_a_system_with_outputs_simulates_them_as_columns():
     k = symsbl.symbols("k")[0]
     system = symsbl.OdeSystem((x, v), (F,), (v, F - 2.0 * v - k * x), (k,), (400.0,), "osc")
     system = system.with_outputs(a=system.rhs[1], Fc=k * x + 2.0 * v)
-    record = symsbl.simulate(system, symsbl.time_grid(2.0, 500), inputs=symsbl.Sine(3.0, 4.0), method="rk4",
-                             substeps=8)
+    record = symsbl.simulate(system, symsbl.time_grid(2.0, 500), inputs=symsbl.Sine(3.0, 4.0), method="rk4", substeps=8)
     assert record.state_names == ("x", "v", "a", "Fc")
     X, U = record.states[:, :2], record.inputs[:, 0]
     assert np.allclose(record.column("a"), U - 2.0 * X[:, 1] - 400.0 * X[:, 0], rtol=0, atol=1e-12)
@@ -81,8 +90,10 @@ def test_a_system_with_outputs_simulates_them_as_columns():
 def test_outputs_that_clash_with_the_symbols_are_refused():
     x, v, F = symsbl.symbols("x v F")
     system = symsbl.OdeSystem((x, v), (F,), (v, F - x))
-    with pytest.raises(symsbl.SimulationError, match=exactly("outputs: expected names unlike the states', inputs', "
-                                                             "parameters' and each other's, received v")):
+    with pytest.raises(
+        symsbl.SimulationError,
+        match=exactly("outputs: expected names unlike the states', inputs', parameters' and each other's, received v"),
+    ):
         system.with_outputs(v=x)
 
 
@@ -90,8 +101,10 @@ def test_an_algebraic_output_that_is_not_a_column_is_refused():
     record, _ = ro.accelerometer_record(ro.HARDENING, 0, seconds=1.0, keep=("x", "v"))
     with pytest.raises(DataError, match=exactly("outputs Fc: expected columns of the data, received no such column")):
         symsbl.identify(record, _library(), states=["x", "v"], outputs=["Fc"])
-    with pytest.raises(ParameterError, match=exactly("outputs: expected columns named unlike the states and the "
-                                                     "accelerations, received ['x']")):
+    with pytest.raises(
+        ParameterError,
+        match=exactly("outputs: expected columns named unlike the states and the accelerations, received ['x']"),
+    ):
         symsbl.identify(record, _library(), states=["x", "v"], outputs=["x"])
 
 
@@ -134,8 +147,11 @@ def test_a_model_file_with_an_output_of_an_unknown_kind_is_refused(tmp_path):
     model = _quiet(symsbl.identify, measured, _library(), states=["x", "v"], kinematics="x:v:a", refine=False)
     doc = model.to_json()
     doc["outputs"] = [{"name": "a", "kind": "strain", "of": "v"}]
-    with pytest.raises(DataError, match=r"^model JSON.outputs\[0\]: expected an object \{name, kind\} with kind one "
-                                        r"of \['state', 'acceleration', 'algebraic'\]"):
+    with pytest.raises(
+        DataError,
+        match=r"^model JSON.outputs\[0\]: expected an object \{name, kind\} with kind one "
+        r"of \['state', 'acceleration', 'algebraic'\]",
+    ):
         symsbl.IdentifiedModel.from_json(doc)
     doc["outputs"] = [{"name": "a", "kind": "acceleration", "of": "x"}]
     with pytest.raises(DataError, match=r"^model JSON.outputs: 'a': expected the acceleration of the velocity"):
@@ -166,8 +182,7 @@ def test_two_accelerometers_identify_a_chain_with_a_cubic_spring():
     measured, _ = chain.record(1)
     x1, v1, x2, v2, F = symsbl.symbols("x1 v1 x2 v2 F")
     library = symsbl.polynomial([x1, v1, x2, v2], 3) + symsbl.inputs([F])
-    model = _quiet(symsbl.identify, measured, library, states=["x1", "v1", "x2", "v2"],
-                   kinematics="x1:v1:a1,x2:v2:a2")
+    model = _quiet(symsbl.identify, measured, library, states=["x1", "v1", "x2", "v2"], kinematics="x1:v1:a1,x2:v2:a2")
     for state, truth in chain.truth().items():
         eq = model.equation(state)
         assert sorted(eq.names) == sorted(truth), (state, eq.names)
@@ -192,8 +207,9 @@ def _force_cell_record(seed: int, rms: float = 4.0):
 def test_a_force_cell_is_an_algebraic_output_identified_with_the_motion():
     """Position and ground force measured, velocity not: both equations exact, the force cell's within 1 %."""
     plant = ro.HARDENING
-    model = _quiet(symsbl.identify, _force_cell_record(1), _library(), states=["x", "v"], kinematics="x:v",
-                   outputs=["Fc"])
+    model = _quiet(
+        symsbl.identify, _force_cell_record(1), _library(), states=["x", "v"], kinematics="x:v", outputs=["Fc"]
+    )
     assert model.outputs == (StateOutput("x"), AlgebraicOutput("Fc"))
     cell = model.equation("Fc")
     assert cell.algebraic and str(cell).startswith("Fc = ")
@@ -261,16 +277,42 @@ def test_the_command_line_identifies_from_several_accelerometer_files_and_valida
         record, _ = ro.accelerometer_record(ro.HARDENING, seed, rms=rms, seconds=2.0)
         files.append(str(tmp_path / f"level{seed}.csv"))
         symsbl.write_trajectory(record, files[-1])
-    code, out, err = _cli(["identify", *files, "--states", "x,v", "--inputs", "F", "--kinematics", "x:v:a",
-                           "--library", "poly", "--json", str(tmp_path / "model.json"), "--quiet"], capsys)
+    code, out, err = _cli(
+        [
+            "identify",
+            *files,
+            "--states",
+            "x,v",
+            "--inputs",
+            "F",
+            "--kinematics",
+            "x:v:a",
+            "--library",
+            "poly",
+            "--json",
+            str(tmp_path / "model.json"),
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "identified from 2 records (4002 samples)" in out and "a: measures v' (acceleration)" in out
     model = symsbl.IdentifiedModel.load(tmp_path / "model.json")
     assert sorted(model.equation("v").names) == sorted(ro.HARDENING.truth())
     held, _ = ro.accelerometer_record(ro.HARDENING, 3, rms=2.0, seconds=2.0)
     symsbl.write_trajectory(held, tmp_path / "held.csv")
-    code, out, err = _cli(["validate", str(tmp_path / "model.json"), str(tmp_path / "held.csv"), files[0],
-                           "--json", str(tmp_path / "v.json"), "--quiet"], capsys)
+    code, out, err = _cli(
+        [
+            "validate",
+            str(tmp_path / "model.json"),
+            str(tmp_path / "held.csv"),
+            files[0],
+            "--json",
+            str(tmp_path / "v.json"),
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 0, err
     doc = json.loads((tmp_path / "v.json").read_text())
     assert doc["status"] == "ok" and [r["data"] for r in doc["records"]] == [str(tmp_path / "held.csv"), files[0]]
@@ -283,10 +325,25 @@ def test_the_command_line_refuses_files_of_other_columns(tmp_path, capsys):
     symsbl.write_trajectory(a, tmp_path / "a.csv")
     symsbl.write_trajectory(b, tmp_path / "b.csv")
     before = (tmp_path / "b.csv").read_bytes()
-    code, out, err = _cli(["identify", str(tmp_path / "a.csv"), str(tmp_path / "b.csv"), "--states", "x,v",
-                           "--inputs", "F", "--kinematics", "x:v:a", "--quiet"], capsys)
+    code, out, err = _cli(
+        [
+            "identify",
+            str(tmp_path / "a.csv"),
+            str(tmp_path / "b.csv"),
+            "--states",
+            "x,v",
+            "--inputs",
+            "F",
+            "--kinematics",
+            "x:v:a",
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 2 and out == ""
-    assert err == (f"symsbl identify: error: DATA {str(tmp_path / 'b.csv')!r}: expected the columns of "
-                   f"{str(tmp_path / 'a.csv')!r} ['a', 'F'], received ['x', 'a', 'F']; give files of one test "
-                   "campaign, each with the same columns\n")
+    assert err == (
+        f"symsbl identify: error: DATA {str(tmp_path / 'b.csv')!r}: expected the columns of "
+        f"{str(tmp_path / 'a.csv')!r} ['a', 'F'], received ['x', 'a', 'F']; give files of one test "
+        "campaign, each with the same columns\n"
+    )
     assert (tmp_path / "b.csv").read_bytes() == before

@@ -47,12 +47,19 @@ def test_multisine_seeded_phases():
 
 
 def test_multisine_errors():
-    with pytest.raises(DataError, match=exactly('Multisine: expected a harmonic of 1/period = 1 Hz in the band, '
-                                                'received [0.2, 0.5] Hz, which holds none; widen the band or lengthen '
-                                                'the period')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "Multisine: expected a harmonic of 1/period = 1 Hz in the band, "
+            "received [0.2, 0.5] Hz, which holds none; widen the band or lengthen "
+            "the period"
+        ),
+    ):
         Multisine(1.0, 0.2, 0.5)
-    with pytest.raises(DataError, match=exactly('Multisine: expected period > 0 and 0 <= f_min <= f_max, received '
-                                                'period=1.0, f_min=10, f_max=5')):
+    with pytest.raises(
+        DataError,
+        match=exactly("Multisine: expected period > 0 and 0 <= f_min <= f_max, received period=1.0, f_min=10, f_max=5"),
+    ):
         Multisine(1.0, 10, 5)
 
 
@@ -80,13 +87,16 @@ def test_chirp_instantaneous_frequency(method):
 
 
 def test_chirp_errors():
-    with pytest.raises(DataError, match=exactly("Chirp.method: expected one of ['linear', 'exponential'], received "
-                                                "'log'")):
+    with pytest.raises(
+        DataError, match=exactly("Chirp.method: expected one of ['linear', 'exponential'], received 'log'")
+    ):
         Chirp(method="log")
-    with pytest.raises(DataError, match=exactly('Chirp: expected f0 > 0 and f1 > 0 for an exponential sweep, received '
-                                                'f0=0.0, f1=100.0')):
+    with pytest.raises(
+        DataError,
+        match=exactly("Chirp: expected f0 > 0 and f1 > 0 for an exponential sweep, received f0=0.0, f1=100.0"),
+    ):
         Chirp(f0=0.0, method="exponential")
-    with pytest.raises(DataError, match=exactly('Chirp.duration: expected a duration > 0 s, received 0.0')):
+    with pytest.raises(DataError, match=exactly("Chirp.duration: expected a duration > 0 s, received 0.0")):
         Chirp(duration=0.0)
 
 
@@ -112,17 +122,23 @@ def test_sampled_linear_interpolation():
 
 
 def test_sampled_errors():
-    with pytest.raises(DataError, match=exactly('Sampled values: expected shape (3,) or (3, n_outputs) to match t, '
-                                                'received shape (2,)')):
+    with pytest.raises(
+        DataError,
+        match=exactly("Sampled values: expected shape (3,) or (3, n_outputs) to match t, received shape (2,)"),
+    ):
         Sampled([0, 1, 2], [1, 2])
-    with pytest.raises(DataError, match=exactly('Sampled t: expected strictly increasing times, received t = 1.0 at '
-                                                'row 2')):
+    with pytest.raises(
+        DataError, match=exactly("Sampled t: expected strictly increasing times, received t = 1.0 at row 2")
+    ):
         Sampled([0, 1, 1], [1, 2, 3])
-    with pytest.raises(DataError, match=exactly('Sampled: expected finite t and values, received NaN/inf samples; '
-                                                'remove or repair them')):
+    with pytest.raises(
+        DataError,
+        match=exactly("Sampled: expected finite t and values, received NaN/inf samples; remove or repair them"),
+    ):
         Sampled([0, 1, 2], [1, np.nan, 3])
-    with pytest.raises(DataError, match=exactly('Sampled t: expected a 1-D array of at least 2 samples, received shape '
-                                                '(1,)')):
+    with pytest.raises(
+        DataError, match=exactly("Sampled t: expected a 1-D array of at least 2 samples, received shape (1,)")
+    ):
         Sampled([0], [1])
 
 

@@ -101,8 +101,10 @@ def test_sampled_input_is_held_linear(method):
 def test_rk4_converges_at_fourth_order():
     t = time_grid(0.5, 256)
     ref = sine_reference(t, np.zeros(2), 100.0, 10.0, 0.0)
-    errs = [rel_err(simulate(systems.linear(), t, inputs=Sine(), method="rk4", substeps=s, jit=False).states, ref)
-            for s in (1, 2, 4, 8)]
+    errs = [
+        rel_err(simulate(systems.linear(), t, inputs=Sine(), method="rk4", substeps=s, jit=False).states, ref)
+        for s in (1, 2, 4, 8)
+    ]
     slope = -np.polyfit(np.log([1, 2, 4, 8]), np.log(errs), 1)[0]
     assert 3.8 < slope < 4.2, errs
 
@@ -122,12 +124,17 @@ def test_coulomb_rk4_converges_first_order_and_auto_avoids_cvodes():
 
 def test_coulomb_stalls_cvodes_which_reports_it():
     t = time_grid(0.1, 4096)
-    with pytest.raises(SimulationError, match=exactly('simulation of \'coulomb\' with cvodes: expected a solution that '
-                                                      'stays finite, received divergence at t = 0 s (cvodes failed: '
-                                                      'CVode returned "CV_TOO_MUCH_WORK". Consult CVODES '
-                                                      'documentation.); fewer than 2 samples were computed, so there '
-                                                      'is nothing to return; the right-hand side is discontinuous: use '
-                                                      'method=\'rk4\' (or \'auto\')')):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "simulation of 'coulomb' with cvodes: expected a solution that "
+            "stays finite, received divergence at t = 0 s (cvodes failed: "
+            'CVode returned "CV_TOO_MUCH_WORK". Consult CVODES '
+            "documentation.); fewer than 2 samples were computed, so there "
+            "is nothing to return; the right-hand side is discontinuous: use "
+            "method='rk4' (or 'auto')"
+        ),
+    ):
         simulate(systems.coulomb(), t, inputs=Sine(), method="cvodes")
 
 
@@ -166,8 +173,9 @@ def test_bouc_wen_runs_and_methods_agree(n):
     s = systems.bouc_wen(n=n)
     cv = simulate(s, t, inputs=Sine())
     np.testing.assert_array_equal(cv.states, simulate(s, t, inputs=Sine(), method="cvodes").states)
-    errs = [rel_err(simulate(s, t, inputs=Sine(), method="rk4", substeps=k, jit=False).states, cv.states)
-            for k in (1, 4)]
+    errs = [
+        rel_err(simulate(s, t, inputs=Sine(), method="rk4", substeps=k, jit=False).states, cv.states) for k in (1, 4)
+    ]
     assert errs[1] < 5e-6 and errs[1] < errs[0] / 3
     assert np.abs(cv.states[:, 2]).max() > 10.0  # the hysteretic force is active
 
@@ -180,10 +188,13 @@ def blow_up():
 @pytest.mark.parametrize("method", ["cvodes", "rk4"])
 def test_divergence_raises_or_truncates(method):
     t = time_grid(2.0, 1000)
-    with pytest.raises(SimulationError, match=rf"^simulation of 'blow_up' with {method}: expected a solution that "
-                                              rf"stays "
-                                              r"finite, received divergence at t = (1\.\d+|0\.99\d+) s \(.+\); pass "
-                                              r"on_divergence='truncate' to get the trajectory up to that point$"):
+    with pytest.raises(
+        SimulationError,
+        match=rf"^simulation of 'blow_up' with {method}: expected a solution that "
+        rf"stays "
+        r"finite, received divergence at t = (1\.\d+|0\.99\d+) s \(.+\); pass "
+        r"on_divergence='truncate' to get the trajectory up to that point$",
+    ):
         simulate(blow_up(), t, x0=[1.0], method=method, jit=False)
     for mode in ("truncate", "return"):
         tr = simulate(blow_up(), t, x0=[1.0], method=method, on_divergence=mode, jit=False)
@@ -196,8 +207,9 @@ def test_chunks_carry_the_state_and_start_time_is_absolute():
     s = systems.duffing()
     t = time_grid(0.2, 8192)
     whole = simulate(s, t, inputs=Sine(), method="rk4", jit=False)
-    np.testing.assert_array_equal(simulate(s, t, inputs=Sine(), method="rk4", chunk_size=7, jit=False).states,
-                                  whole.states)
+    np.testing.assert_array_equal(
+        simulate(s, t, inputs=Sine(), method="rk4", chunk_size=7, jit=False).states, whole.states
+    )
     for method in ("rk4", "cvodes"):
         whole = simulate(s, t, inputs=Sine(), method=method, jit=False)
         tail = simulate(s, t[500:], inputs=Sine(), x0=whole.states[500], method=method, jit=False)
@@ -242,37 +254,58 @@ def test_jit_matches_virtual_machine():
 
 def test_argument_errors():
     s, t = systems.linear(), time_grid(0.01, 1000)
-    with pytest.raises(SimulationError, match=exactly("method: expected one of 'auto', 'cvodes', 'rk4', received "
-                                                      "'euler'")):
+    with pytest.raises(
+        SimulationError, match=exactly("method: expected one of 'auto', 'cvodes', 'rk4', received 'euler'")
+    ):
         simulate(s, t, method="euler")
-    with pytest.raises(SimulationError, match=exactly("on_divergence: expected one of 'raise', 'truncate', received "
-                                                      "'x'")):
+    with pytest.raises(
+        SimulationError, match=exactly("on_divergence: expected one of 'raise', 'truncate', received 'x'")
+    ):
         simulate(s, t, on_divergence="x")
     with pytest.raises(SimulationError, match=exactly("jit: expected one of 'auto', True, False, received 'yes'")):
         simulate(s, t, jit="yes")
-    with pytest.raises(SimulationError, match=exactly("x0: expected 2 finite values (states ['x1', 'x2']), received "
-                                                      "array([1.])")):
+    with pytest.raises(
+        SimulationError, match=exactly("x0: expected 2 finite values (states ['x1', 'x2']), received array([1.])")
+    ):
         simulate(s, t, x0=[1.0])
-    with pytest.raises(SimulationError, match=exactly("inputs: expected one signal per input of 'linear' ['F'], "
-                                                      "received signals for 2; use FreeDecay() for a zero input")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "inputs: expected one signal per input of 'linear' ['F'], "
+            "received signals for 2; use FreeDecay() for a zero input"
+        ),
+    ):
         simulate(s, t, inputs=[Sine(), Sine()])
-    with pytest.raises(SimulationError, match=exactly('inputs: expected an array sampled on t: shape (11,) or (11, 1), '
-                                                      'received shape (5,)')):
+    with pytest.raises(
+        SimulationError,
+        match=exactly("inputs: expected an array sampled on t: shape (11,) or (11, 1), received shape (5,)"),
+    ):
         simulate(s, t, inputs=np.zeros(5))
-    with pytest.raises(SimulationError, match=exactly("t: expected a grid inside the sampled input's span [0.0, "
-                                                      "0.005], "
-                                                      "received [0.0, 0.01]; shorten t or supply samples covering it")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "t: expected a grid inside the sampled input's span [0.0, "
+            "0.005], "
+            "received [0.0, 0.01]; shorten t or supply samples covering it"
+        ),
+    ):
         simulate(s, t, inputs=Sampled([0.0, 0.005], [1.0, 2.0]))
-    with pytest.raises(SimulationError, match=exactly('substeps: expected an integer >= 1, received 0')):
+    with pytest.raises(SimulationError, match=exactly("substeps: expected an integer >= 1, received 0")):
         simulate(s, t, method="rk4", substeps=0)
     with pytest.raises(SimulationError, match=exactly("inputs: expected Signals or an array, received an element 'F'")):
         simulate(s, t, inputs=[Sine(), "F"])
-    with pytest.raises(SimulationError, match=exactly('system: expected an OdeSystem, received str')):
+    with pytest.raises(SimulationError, match=exactly("system: expected an OdeSystem, received str")):
         simulate("duffing", t)
-    with pytest.raises(SimulationError, match=exactly('duration * fs: expected at least 1 sample interval, received '
-                                                      '0.0 s at 1000 Hz')):
+    with pytest.raises(
+        SimulationError, match=exactly("duration * fs: expected at least 1 sample interval, received 0.0 s at 1000 Hz")
+    ):
         time_grid(0.0, 1000)
-    with pytest.raises(DataError, match=exactly('time: expected strictly increasing values, received t = 0.009 at row '
-                                                '1 after t = 0.01; sort the rows or pass --fs/fs for a rounded time '
-                                                'column')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "time: expected strictly increasing values, received t = 0.009 at row "
+            "1 after t = 0.01; sort the rows or pass --fs/fs for a rounded time "
+            "column"
+        ),
+    ):
         simulate(s, t[::-1])

@@ -27,9 +27,15 @@ from symsbl import (
 )
 
 LIB = paper(symbols("x1 x2"), symbols("F"), degree=3)
-STRATEGIES = [WeakForm(window=37), WeakForm(window=4, power=2), WeakForm(window=24, overlap=2),
-              WeakForm(window=12, overlap=3), PointDifference(), CentralDifference(),
-              SavitzkyGolay(window=9, polyorder=3)]
+STRATEGIES = [
+    WeakForm(window=37),
+    WeakForm(window=4, power=2),
+    WeakForm(window=24, overlap=2),
+    WeakForm(window=12, overlap=3),
+    PointDifference(),
+    CentralDifference(),
+    SavitzkyGolay(window=9, polyorder=3),
+]
 
 
 @pytest.fixture(scope="module")
@@ -135,45 +141,73 @@ def test_streamed_model_equals_in_memory_model(record):
 
 def test_gap_between_chunks_is_named(record):
     pieces = [record.slice(0, 1000), record.slice(1001, 2000)]
-    with pytest.raises(DataError, match=exactly('records[0] (chunks) chunk 1: expected a start one sample interval '
-                                                '(0.0001220703125 s) after the previous chunk, received t = '
-                                                'np.float64(0.1221923828125), 0.000244140625 s after it; chunks must '
-                                                'be consecutive pieces of one record; pass separate records as list '
-                                                'entries')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records[0] (chunks) chunk 1: expected a start one sample interval "
+            "(0.0001220703125 s) after the previous chunk, received t = "
+            "np.float64(0.1221923828125), 0.000244140625 s after it; chunks must "
+            "be consecutive pieces of one record; pass separate records as list "
+            "entries"
+        ),
+    ):
         stream_stats(chunked(pieces), LIB)
 
 
 def test_array_chunks_need_names(record):
-    with pytest.raises(DataError, match=exactly('records[0] (chunks) chunk 0: expected column names for array chunks, '
-                                                'received none; pass states=... (and inputs=...) to symsbl.chunked')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records[0] (chunks) chunk 0: expected column names for array chunks, "
+            "received none; pass states=... (and inputs=...) to symsbl.chunked"
+        ),
+    ):
         stream_stats(chunked([_as_array(record)]), LIB)
-    with pytest.raises(DataError, match=exactly("records[0] (chunks) chunk 0: expected an array of shape (n, 4) with "
-                                                "columns ['t', 'x1', 'x2', 'F'], received shape (4097, 3)")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records[0] (chunks) chunk 0: expected an array of shape (n, 4) with "
+            "columns ['t', 'x1', 'x2', 'F'], received shape (4097, 3)"
+        ),
+    ):
         stream_stats(chunked([_as_array(record)[:, :3]], states=("x1", "x2"), inputs=("F",)), LIB)
 
 
 def test_iterator_is_read_once(record):
     rec = chunked(iter(_pieces(record, (2000,))))
     stream_stats(rec, LIB, derivative="point")
-    with pytest.raises(DataError, match=exactly('chunks: expected a record that can be read again, received an '
-                                                'iterator, already read; pass a list or a function returning a new '
-                                                'iterator')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "chunks: expected a record that can be read again, received an "
+            "iterator, already read; pass a list or a function returning a new "
+            "iterator"
+        ),
+    ):
         stream_stats(rec, LIB, derivative="point")
 
 
 def test_bad_sources_are_named(record, tmp_path):
     with pytest.raises(DataError, match="chunks: expected a sequence, an iterator or a function"):
         chunked(record)
-    with pytest.raises(DataError, match=exactly("records: expected a Trajectory, a ChunkedRecord or a list of them, "
-                                                "received the path 'a.npz'; open it with symsbl.open_npz(path, "
-                                                "states=..., inputs=...)")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records: expected a Trajectory, a ChunkedRecord or a list of them, "
+            "received the path 'a.npz'; open it with symsbl.open_npz(path, "
+            "states=..., inputs=...)"
+        ),
+    ):
         stream_stats("a.npz", LIB)
     with pytest.raises(DataError, match=r"records\[1\]: expected a Trajectory or a ChunkedRecord"):
         stream_stats([record, np.zeros((10, 4))], LIB)
     path = tmp_path / "r.npz"
     np.savez(path, **record.to_dict())
-    with pytest.raises(DataError, match=r"r\.npz: column 'x3': expected a column among \['F', 't', 'x1', 'x2'\], "
-                                        r"received no such column$"):
+    with pytest.raises(
+        DataError,
+        match=r"r\.npz: column 'x3': expected a column among \['F', 't', 'x1', 'x2'\], "
+        r"received no such column$",
+    ):
         open_npz(path, states=("x1", "x3"))
     with pytest.raises(DataError, match=r"start, stop: expected 0 <= start < stop <= 4097 samples"):
         open_npz(path, states=("x1", "x2"), start=5000)
@@ -187,8 +221,9 @@ def test_unknown_strategy_and_bad_settings(record):
 
     # A user's strategy declares its stencil (the Differentiator contract), so it streams like the built-in ones.
     streamed = stream_stats(chunked([record.slice(0, 1500), record.slice(1500, None)]), LIB, derivative=Custom())
-    np.testing.assert_allclose(streamed.stats.gram, regression_stats(record, LIB, derivative=Custom()).stats.gram,
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        streamed.stats.gram, regression_stats(record, LIB, derivative=Custom()).stats.gram, rtol=1e-12
+    )
     with pytest.raises(DataError, match="n_jobs: expected an integer >= 1, received 0"):
         stream_stats(record, LIB, n_jobs=0)
 
@@ -196,25 +231,50 @@ def test_unknown_strategy_and_bad_settings(record):
 def test_records_must_share_names(record):
     renamed = Trajectory(record.t, record.states, record.inputs, ("x1", "x2"), ("G",))
     lib = paper(symbols("x1 x2"), (), degree=2)
-    with pytest.raises(DataError, match=exactly("records[1]: expected the states ('x1', 'x2') and inputs ('F',) of "
-                                                "records[0], received states ('x1', 'x2'), inputs ('G',)")):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "records[1]: expected the states ('x1', 'x2') and inputs ('F',) of "
+            "records[0], received states ('x1', 'x2'), inputs ('G',)"
+        ),
+    ):
         stream_stats([record, renamed], lib, derivative="point")
 
 
 def test_data_errors_match_the_in_memory_path(record):
-    flat = Trajectory(record.t, np.column_stack([record.states[:, 0], np.full(record.n_samples, 2.0)]),
-                      record.inputs, ("x1", "x2"), ("F",))
-    with pytest.raises(DataError, match=exactly("state 'x2': expected a column that varies, received a constant 2; "
-                                                "remove it from the states or record a response in which it moves")):
+    flat = Trajectory(
+        record.t,
+        np.column_stack([record.states[:, 0], np.full(record.n_samples, 2.0)]),
+        record.inputs,
+        ("x1", "x2"),
+        ("F",),
+    )
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "state 'x2': expected a column that varies, received a constant 2; "
+            "remove it from the states or record a response in which it moves"
+        ),
+    ):
         stream_stats(chunked(_pieces(flat, (1000,))), LIB, derivative="point")
-    with pytest.raises(DataError, match=exactly('rows: expected more regression rows than candidate terms (34), '
-                                                'received 30 rows from 1 record(s) with PointDifference; use longer '
-                                                'records, fewer candidate terms (a lower degree) or a derivative '
-                                                'strategy with more rows')):
+    with pytest.raises(
+        DataError,
+        match=exactly(
+            "rows: expected more regression rows than candidate terms (34), "
+            "received 30 rows from 1 record(s) with PointDifference; use longer "
+            "records, fewer candidate terms (a lower degree) or a derivative "
+            "strategy with more rows"
+        ),
+    ):
         stream_stats(record.slice(0, 30), LIB, derivative="point")
-    with pytest.raises(LibraryError, match=exactly("library: expected variables named like the data's states ['x1', "
-                                                   "'x2'] and inputs ['F'], received a library that also uses ['y']; "
-                                                   "declare the library with symbols named like the columns")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "library: expected variables named like the data's states ['x1', "
+            "'x2'] and inputs ['F'], received a library that also uses ['y']; "
+            "declare the library with symbols named like the columns"
+        ),
+    ):
         stream_stats(record, paper(symbols("x1 y"), (), degree=1), derivative="point")
 
 

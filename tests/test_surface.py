@@ -22,8 +22,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "symsbl"
 DOCS = ROOT / "docs"
 PUBLIC_MODULES = {"systems", "plots"}
-SUBMODULES = sorted(m.name for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.")
-                    if not m.name.endswith("__main__"))
+SUBMODULES = sorted(
+    m.name for m in pkgutil.walk_packages(symsbl.__path__, "symsbl.") if not m.name.endswith("__main__")
+)
 
 
 def _import_everything():
@@ -42,16 +43,38 @@ def test_no_public_attribute_is_an_accidental_module():
     _import_everything()
     modules = {n for n, v in vars(symsbl).items() if not n.startswith("_") and inspect.ismodule(v)}
     assert modules <= PUBLIC_MODULES, modules - PUBLIC_MODULES
-    assert all(n.startswith("_") or n in PUBLIC_MODULES or n == "__main__"
-               for n in (m.name.split(".")[1] for m in pkgutil.iter_modules(symsbl.__path__, "symsbl.")))
+    assert all(
+        n.startswith("_") or n in PUBLIC_MODULES or n == "__main__"
+        for n in (m.name.split(".")[1] for m in pkgutil.iter_modules(symsbl.__path__, "symsbl."))
+    )
     # the functions named like the private subpackages stay functions after those are imported
     assert callable(symsbl.discrepancy) and not inspect.ismodule(symsbl.discrepancy)
 
 
 _TYPE_NAME = re.compile(r"\b([A-Z][A-Za-z0-9]+)\b")
 #: Types from outside symsbl that public signatures may name.
-_FOREIGN = {"Sequence", "Mapping", "Iterable", "Iterator", "Callable", "Any", "Path", "ndarray", "SX", "Function",
-            "Expr", "Eq", "Figure", "Symbol", "Array", "Trajectory_", "None", "True", "False", "Delayed"}
+_FOREIGN = {
+    "Sequence",
+    "Mapping",
+    "Iterable",
+    "Iterator",
+    "Callable",
+    "Any",
+    "Path",
+    "ndarray",
+    "SX",
+    "Function",
+    "Expr",
+    "Eq",
+    "Figure",
+    "Symbol",
+    "Array",
+    "Trajectory_",
+    "None",
+    "True",
+    "False",
+    "Delayed",
+}
 
 
 def _annotations(obj):
@@ -111,20 +134,24 @@ def test_every_symsbl_name_in_docstrings_the_readme_and_the_docs_resolves():
 
 def test_the_architecture_page_names_every_module():
     page = (DOCS / "architecture.md").read_text()
-    layers = page[page.index("## The layers"):page.index("## Known debts")]
+    layers = page[page.index("## The layers") : page.index("## Known debts")]
     for path in PACKAGE.rglob("*.py"):
         if path.name in ("__init__.py", "__main__.py"):
             continue
         assert f"`{path.stem}`" in layers or f"`{path.stem.lstrip('_')}`" in layers, (
-            f"{path.relative_to(PACKAGE)} missing from the layers of docs/architecture.md")
+            f"{path.relative_to(PACKAGE)} missing from the layers of docs/architecture.md"
+        )
 
 
 def _function_bodies(tree):
     for node in ast.walk(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             first = node.body[0]
-            doc = (isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant)
-                   and isinstance(first.value.value, str))
+            doc = (
+                isinstance(first, ast.Expr)
+                and isinstance(first.value, ast.Constant)
+                and isinstance(first.value.value, str)
+            )
             start = first.end_lineno + 1 if doc and len(node.body) > 1 else first.lineno
             yield node.name, node.end_lineno - start + 1
 

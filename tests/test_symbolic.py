@@ -37,8 +37,11 @@ def test_symbols_accepts_spaces_commas_and_sequences():
 
 @pytest.mark.parametrize(
     "names, match",
-    [("", r"names: expected identifiers.*no names"), ("x 1y", r"invalid: \['1y'\]"),
-     ("x x", r"distinct.*\['x', 'x'\]")],
+    [
+        ("", r"names: expected identifiers.*no names"),
+        ("x 1y", r"invalid: \['1y'\]"),
+        ("x x", r"distinct.*\['x', 'x'\]"),
+    ],
 )
 def test_symbols_rejects_bad_names(names, match):
     with pytest.raises(LibraryError, match=match):
@@ -117,26 +120,44 @@ def test_sympy_to_casadi_keeps_sign_exact_where_lambdify_fails():
 
 
 def test_sympy_to_casadi_errors_name_the_symbol_and_function():
-    with pytest.raises(LibraryError, match=exactly("expr: expected symbols among the declared variables ['F', 'x1', "
-                                                   "'x2', 'x3'], received 'y'; declare it or rename it")):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "expr: expected symbols among the declared variables ['F', 'x1', "
+            "'x2', 'x3'], received 'y'; declare it or rename it"
+        ),
+    ):
         sympy_to_casadi(S1 + sp.Symbol("y"), SX_BY_NAME)
-    with pytest.raises(LibraryError, match=exactly('expr: expected functions with a CasADi counterpart (Add, Mul, Pow, '
-                                                   'Piecewise, Abs, And, Equality, GreaterThan, LessThan, Max, Min, '
-                                                   'Not, Or, StrictGreaterThan, StrictLessThan, Unequality, acos, '
-                                                   'acosh, asin, asinh, atan, atan2, atanh, ceiling, cos, cosh, erf, '
-                                                   'exp, floor, log, sign, sin, sinh, tan, tanh), received gamma')):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "expr: expected functions with a CasADi counterpart (Add, Mul, Pow, "
+            "Piecewise, Abs, And, Equality, GreaterThan, LessThan, Max, Min, "
+            "Not, Or, StrictGreaterThan, StrictLessThan, Unequality, acos, "
+            "acosh, asin, asinh, atan, atan2, atanh, ceiling, cos, cosh, erf, "
+            "exp, floor, log, sign, sin, sinh, tan, tanh), received gamma"
+        ),
+    ):
         sympy_to_casadi(sp.gamma(S1), SX_BY_NAME)
 
 
 def test_casadi_to_sympy_errors_name_the_operation():
-    with pytest.raises(LibraryError, match=exactly('expr: expected operations with a sympy counterpart, received the '
-                                                   'CasADi operation OP_FMOD; rewrite the term with elementary '
-                                                   'functions, powers, sign, fabs, fmin/fmax or if_else')):
+    with pytest.raises(
+        LibraryError,
+        match=exactly(
+            "expr: expected operations with a sympy counterpart, received the "
+            "CasADi operation OP_FMOD; rewrite the term with elementary "
+            "functions, powers, sign, fabs, fmin/fmax or if_else"
+        ),
+    ):
         casadi_to_sympy(ca.fmod(X1, X2))
     with pytest.raises(LibraryError, match=r"expected a casadi.SX expression or a list of them, received dict"):
         casadi_to_sympy({"a": X1})
-    with pytest.raises(LibraryError, match=r"expr\[1\]: expected a scalar casadi.SX expression, received SX of shape "
-                                           r"\(2, 1\)"):
+    with pytest.raises(
+        LibraryError,
+        match=r"expr\[1\]: expected a scalar casadi.SX expression, received SX of shape "
+        r"\(2, 1\)",
+    ):
         casadi_to_sympy([X1, ca.vertcat(X1, X2)])
 
 

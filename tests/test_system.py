@@ -46,8 +46,9 @@ def test_bouc_wen_matches_classical_form(n):
 
 
 def test_bouc_wen_rejects_bad_exponent():
-    with pytest.raises(SimulationError, match=exactly('n: expected a positive integer exponent (e.g. 2 or 3), received '
-                                                      '2.5')):
+    with pytest.raises(
+        SimulationError, match=exactly("n: expected a positive integer exponent (e.g. 2 or 3), received 2.5")
+    ):
         systems.bouc_wen(n=2.5)
 
 
@@ -65,8 +66,10 @@ def test_parameters_are_symbols_and_reparameterise():
     s2 = s.with_parameters(k3=2e9, c=0.0)
     np.testing.assert_allclose(s2.evaluate_rhs(X2, U), oscillator(lambda x1, x2: 2e9 * x1**3, c=0.0), rtol=1e-13)
     assert s.parameter_values[3] == 1e9  # the original is unchanged
-    with pytest.raises(SimulationError, match=exactly("parameters: expected names among ['m', 'c', 'k', 'k3'] of "
-                                                      "'duffing', received ['k9']")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly("parameters: expected names among ['m', 'c', 'k', 'k3'] of 'duffing', received ['k9']"),
+    ):
         s.with_parameters(k9=1.0)
 
 
@@ -89,8 +92,9 @@ def test_identified_style_system_from_arbitrary_sx():
     x, u = ca.SX.sym("x"), ca.SX.sym("u")
     s = OdeSystem((x,), (u,), (-2.5 * x + 0.3 * ca.sin(x) * ca.fabs(u) + 4,), name="identified")
     X, Uu = np.array([[0.5], [-1.0]]), np.array([[2.0], [-3.0]])
-    np.testing.assert_allclose(s.evaluate_rhs(X, Uu)[:, 0],
-                               -2.5 * X[:, 0] + 0.3 * np.sin(X[:, 0]) * np.abs(Uu[:, 0]) + 4)
+    np.testing.assert_allclose(
+        s.evaluate_rhs(X, Uu)[:, 0], -2.5 * X[:, 0] + 0.3 * np.sin(X[:, 0]) * np.abs(Uu[:, 0]) + 4
+    )
     assert not s.is_smooth
     const = OdeSystem((x,), (), (1.5,))
     np.testing.assert_allclose(const.evaluate_rhs(np.zeros((3, 1))), 1.5)
@@ -98,39 +102,63 @@ def test_identified_style_system_from_arbitrary_sx():
 
 def test_construction_errors():
     x, y, u, p = (ca.SX.sym(n) for n in ("x", "y", "u", "p"))
-    with pytest.raises(SimulationError, match=exactly("states[0]: expected a scalar casadi.SX symbol, received "
-                                                      "SX((2.*x)); create symbols with symsbl.symbols('x1 x2')")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "states[0]: expected a scalar casadi.SX symbol, received "
+            "SX((2.*x)); create symbols with symsbl.symbols('x1 x2')"
+        ),
+    ):
         OdeSystem((2 * x,), (), (x,))
-    with pytest.raises(SimulationError, match=exactly("states[0]: expected a scalar casadi.SX symbol, received "
-                                                      "SX([v_0, v_1]); create symbols with symsbl.symbols('x1 x2')")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "states[0]: expected a scalar casadi.SX symbol, received "
+            "SX([v_0, v_1]); create symbols with symsbl.symbols('x1 x2')"
+        ),
+    ):
         OdeSystem((ca.SX.sym("v", 2),), (), (x,))
-    with pytest.raises(SimulationError, match=exactly("rhs: expected one expression per state ['x', 'y'], received 1 "
-                                                      "expressions")):
+    with pytest.raises(
+        SimulationError, match=exactly("rhs: expected one expression per state ['x', 'y'], received 1 expressions")
+    ):
         OdeSystem((x, y), (), (x,))
-    with pytest.raises(SimulationError, match=exactly("rhs: expected expressions of the declared symbols ['u', 'x'], "
-                                                      "received expressions "
-                                                      "that also use ['p']; declare them")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "rhs: expected expressions of the declared symbols ['u', 'x'], "
+            "received expressions "
+            "that also use ['p']; declare them"
+        ),
+    ):
         OdeSystem((x,), (u,), (p * x,))
-    with pytest.raises(SimulationError, match=exactly("parameter_values: expected one value per parameter (1), "
-                                                      "received 0 values")):
+    with pytest.raises(
+        SimulationError, match=exactly("parameter_values: expected one value per parameter (1), received 0 values")
+    ):
         OdeSystem((x,), (), (p * x,), (p,))
-    with pytest.raises(SimulationError, match=exactly("states, inputs and parameters together: expected distinct "
-                                                      "symbol names, "
-                                                      "received ['x', 'x']; rename the repeated ['x']")):
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "states, inputs and parameters together: expected distinct "
+            "symbol names, "
+            "received ['x', 'x']; rename the repeated ['x']"
+        ),
+    ):
         OdeSystem((x,), (ca.SX.sym("x"),), (x,))
-    with pytest.raises(SimulationError,
-                       match=exactly("rhs: expected scalar expressions, received one of shape (2, 1)")):
+    with pytest.raises(
+        SimulationError, match=exactly("rhs: expected scalar expressions, received one of shape (2, 1)")
+    ):
         OdeSystem((x,), (), (ca.vertcat(x, x),))
-    with pytest.raises(SimulationError, match=exactly("rhs: expected CasADi SX, numbers or sympy expressions, received "
-                                                      "str")):
+    with pytest.raises(
+        SimulationError, match=exactly("rhs: expected CasADi SX, numbers or sympy expressions, received str")
+    ):
         OdeSystem((x,), (), ("x",))
 
 
 def test_evaluate_rhs_shape_errors():
     s = systems.linear()
-    with pytest.raises(SimulationError, match=exactly('X: expected shape (n_samples, 2), received shape (4, 3)')):
+    with pytest.raises(SimulationError, match=exactly("X: expected shape (n_samples, 2), received shape (4, 3)")):
         s.evaluate_rhs(np.zeros((4, 3)), np.zeros((4, 1)))
-    with pytest.raises(SimulationError, match=exactly('U: expected shape (4, 1), received shape (3, 1)')):
+    with pytest.raises(SimulationError, match=exactly("U: expected shape (4, 1), received shape (3, 1)")):
         s.evaluate_rhs(np.zeros((4, 2)), np.zeros((3, 1)))
 
 

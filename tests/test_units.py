@@ -29,14 +29,19 @@ def _system(m=2.5, c=10.0, k=2.5e4, k3=2.5e9, fc=2.0):
 
 @pytest.fixture(scope="module")
 def record():
-    clean = symsbl.simulate(_system(), symsbl.time_grid(0.5, 4096),
-                            inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=40.0, seed=0), substeps=16)
+    clean = symsbl.simulate(
+        _system(),
+        symsbl.time_grid(0.5, 4096),
+        inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=40.0, seed=0),
+        substeps=16,
+    )
     return clean.with_noise(0.004, seed=1)
 
 
 def _scaled(record, sx, sv, sf, st_):
-    return symsbl.Trajectory(record.t * st_, record.states * [sx, sv], record.inputs * sf, record.state_names,
-                             record.input_names)
+    return symsbl.Trajectory(
+        record.t * st_, record.states * [sx, sv], record.inputs * sf, record.state_names, record.input_names
+    )
 
 
 def _powers(name: str) -> tuple[int, int, int]:
@@ -58,8 +63,9 @@ def _in_first_units(model, sx, sv, sf, st_) -> dict:
 
 @pytest.fixture(scope="module")
 def reference(record):
-    return {refine: _in_first_units(symsbl.identify(record, LIBRARY, refine=refine), 1, 1, 1, 1)
-            for refine in (False, True)}
+    return {
+        refine: _in_first_units(symsbl.identify(record, LIBRARY, refine=refine), 1, 1, 1, 1) for refine in (False, True)
+    }
 
 
 def _assert_same(got: dict, want: dict, share: float) -> None:
@@ -78,11 +84,23 @@ def test_equation_error_is_the_same_in_any_units(record, reference, sx, sv, sf, 
     _assert_same(_in_first_units(model, sx, sv, sf, st_), reference[False], 1e-6)
 
 
-@pytest.mark.parametrize("sx, sv, sf, st_", [(1e9, 1e9, 1e3, 1.0), (1e-30, 1e30, 1e-30, 1e30),
-                                             (1e30, 1e-30, 1e30, 1e-30), (1.0, 1.0, 1.0, 1e-30),
-                                             (1e-10, 1e10, 1.0, 1.0)],
-                         ids=["nm and mN", "small x, large v, small F, long time", "the reverse", "short time",
-                              "x and v in inconsistent units"])
+@pytest.mark.parametrize(
+    "sx, sv, sf, st_",
+    [
+        (1e9, 1e9, 1e3, 1.0),
+        (1e-30, 1e30, 1e-30, 1e30),
+        (1e30, 1e-30, 1e30, 1e-30),
+        (1.0, 1.0, 1.0, 1e-30),
+        (1e-10, 1e10, 1.0, 1.0),
+    ],
+    ids=[
+        "nm and mN",
+        "small x, large v, small F, long time",
+        "the reverse",
+        "short time",
+        "x and v in inconsistent units",
+    ],
+)
 def test_output_error_is_the_same_in_any_units(record, reference, sx, sv, sf, st_):
     model = symsbl.identify(_scaled(record, sx, sv, sf, st_), LIBRARY)
     assert model.fit.value == "output-error"
@@ -102,8 +120,12 @@ def test_the_paper_library_finds_every_term_in_nanometres_and_millinewtons(recor
 
 @pytest.mark.parametrize("factor, term, rms", [(1e-60, "x**3", "1.64e-187"), (1e60, "x**3", "1.64e+173")])
 def test_units_a_double_cannot_square_are_refused_in_one_line(record, factor, term, rms):
-    with pytest.raises(symsbl.DataError, match=exactly(
+    with pytest.raises(
+        symsbl.DataError,
+        match=exactly(
             f"term {term!r}: expected values whose squares a double holds (a root mean square between 1e-145 and "
             f"1e145), received {rms} on this record; express the states and inputs in other units, or lower the "
-            "degree")):
+            "degree"
+        ),
+    ):
         symsbl.identify(_scaled(record, factor, factor, 1.0, 1.0), LIBRARY, refine=False)

@@ -24,25 +24,58 @@ from .errors import SymsblError, expected
 from .interrupt import sigint_recorded
 
 __all__ = [
-    "NONSMOOTH_OPS", "DISCONTINUOUS_OPS", "uses_ops", "scalar_symbols", "interrupts_kept", "run_chunks",
+    "NONSMOOTH_OPS",
+    "DISCONTINUOUS_OPS",
+    "uses_ops",
+    "scalar_symbols",
+    "interrupts_kept",
+    "run_chunks",
 ]
 
 #: CasADi operations whose value or slope jumps: an expression using any of them is not smooth.
 NONSMOOTH_OPS = frozenset(
     getattr(ca, f"OP_{name}")
     for name in (
-        "SIGN", "FABS", "FMIN", "FMAX", "IF_ELSE_ZERO", "FLOOR", "CEIL", "FMOD", "REMAINDER",
-        "COPYSIGN", "LT", "LE", "EQ", "NE", "NOT", "AND", "OR",
+        "SIGN",
+        "FABS",
+        "FMIN",
+        "FMAX",
+        "IF_ELSE_ZERO",
+        "FLOOR",
+        "CEIL",
+        "FMOD",
+        "REMAINDER",
+        "COPYSIGN",
+        "LT",
+        "LE",
+        "EQ",
+        "NE",
+        "NOT",
+        "AND",
+        "OR",
     )
 )
 
 #: The subset whose value jumps (as opposed to a kink such as abs, min, max): adaptive solvers stall on these.
 DISCONTINUOUS_OPS = frozenset(
     getattr(ca, f"OP_{name}")
-    for name in ("SIGN", "IF_ELSE_ZERO", "FLOOR", "CEIL", "FMOD", "REMAINDER", "COPYSIGN", "LT", "LE", "EQ", "NE",
-                 "NOT", "AND", "OR")
+    for name in (
+        "SIGN",
+        "IF_ELSE_ZERO",
+        "FLOOR",
+        "CEIL",
+        "FMOD",
+        "REMAINDER",
+        "COPYSIGN",
+        "LT",
+        "LE",
+        "EQ",
+        "NE",
+        "NOT",
+        "AND",
+        "OR",
+    )
 )
-
 
 
 def uses_ops(exprs, ops=NONSMOOTH_OPS) -> bool:
@@ -60,13 +93,21 @@ def scalar_symbols(symbols, what: str, error: type[SymsblError]) -> tuple[ca.SX,
     if isinstance(symbols, ca.SX):
         symbols = [symbols[i] for i in range(symbols.numel())]
     if isinstance(symbols, str) or not hasattr(symbols, "__iter__"):
-        raise error(expected(what, "a sequence of scalar casadi.SX symbols", type(symbols).__name__,
-                             "create them with symsbl.symbols('x1 x2')", raw=True))
+        raise error(
+            expected(
+                what,
+                "a sequence of scalar casadi.SX symbols",
+                type(symbols).__name__,
+                "create them with symsbl.symbols('x1 x2')",
+                raw=True,
+            )
+        )
     out = tuple(symbols)
     for i, s in enumerate(out):
         if not isinstance(s, ca.SX) or not s.is_scalar() or not s.is_symbolic():
-            raise error(expected(f"{what}[{i}]", "a scalar casadi.SX symbol", s,
-                                 "create symbols with symsbl.symbols('x1 x2')"))
+            raise error(
+                expected(f"{what}[{i}]", "a scalar casadi.SX symbol", s, "create symbols with symsbl.symbols('x1 x2')")
+            )
     names = [s.name() for s in out]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
@@ -108,9 +149,9 @@ def run_chunks(fn: ca.Function, chunk: int, inputs: list[np.ndarray], outputs: l
     full = n - n % chunk
     for start in range(0, full, chunk):
         for i, a in enumerate(inputs):
-            buf.set_arg(i, memoryview(a[start:start + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_arg(i, memoryview(a[start : start + chunk]))  # type: ignore[call-arg, arg-type]
         for j, o in enumerate(outputs):
-            buf.set_res(j, memoryview(o[start:start + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_res(j, memoryview(o[start : start + chunk]))  # type: ignore[call-arg, arg-type]
         call()
     if full == n:
         return

@@ -13,8 +13,9 @@ from .errors import DataError, ParameterError, SymsblError, expected
 __all__ = ["integer", "number", "flag", "choice", "enough_rows", "Constraint", "check_params"]
 
 
-def integer(name: str, value, *, low: float | None = None, high: float | None = None,
-            error: type[SymsblError] = ParameterError) -> int:
+def integer(
+    name: str, value, *, low: float | None = None, high: float | None = None, error: type[SymsblError] = ParameterError
+) -> int:
     """``value`` as an int in ``[low, high]``; bools and floats are refused.
 
     Examples
@@ -33,8 +34,15 @@ def integer(name: str, value, *, low: float | None = None, high: float | None = 
     return int(value)
 
 
-def number(name: str, value, *, low: float | None = None, high: float | None = None, strict: bool = False,
-           error: type[SymsblError] = ParameterError) -> float:
+def number(
+    name: str,
+    value,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    strict: bool = False,
+    error: type[SymsblError] = ParameterError,
+) -> float:
     """``value`` as a finite float in the range (``strict``: bounds excluded)."""
     ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
     ok = ok and math.isfinite(value)
@@ -67,12 +75,15 @@ def choice(name: str, value, options: Mapping | Sequence, *, error: type[SymsblE
 def enough_rows(n_rows: int, n_terms: int, what: str = "the data") -> None:
     """Refuse a regression with no more rows than candidate terms."""
     if n_rows <= n_terms:
-        raise DataError(expected(
-            "rows", f"more regression rows than candidate terms ({n_terms})",
-            f"{n_rows} rows from {what}",
-            "use longer records, fewer candidate terms (a lower degree) or a derivative strategy with more rows",
-            raw=True,
-        ))
+        raise DataError(
+            expected(
+                "rows",
+                f"more regression rows than candidate terms ({n_terms})",
+                f"{n_rows} rows from {what}",
+                "use longer records, fewer candidate terms (a lower degree) or a derivative strategy with more rows",
+                raw=True,
+            )
+        )
 
 
 def _range(low, high, strict: bool = False) -> str:
@@ -144,20 +155,26 @@ class Constraint:
                 if not self.options:
                     raise
                 extra = "".join(f" or {o!r}" for o in self.options)
-                raise ParameterError(expected(name, "an integer" + _range(self.low, self.high) + extra,
-                                              value)) from None
+                raise ParameterError(
+                    expected(name, "an integer" + _range(self.low, self.high) + extra, value)
+                ) from None
         if self.kind == "indices":
             return _indices(name, value, n_columns)
         try:
             return number(name, value, low=self.low, high=self.high, strict=self.strict)
         except ParameterError:
             extra = (", None" if self.none else "") + "".join(f", {o!r}" for o in self.options)
-            raise ParameterError(expected(name, "a finite number" + _range(self.low, self.high, self.strict) + extra,
-                                          value)) from None
+            raise ParameterError(
+                expected(name, "a finite number" + _range(self.low, self.high, self.strict) + extra, value)
+            ) from None
 
 
-def check_params(params: Mapping, constraints: Mapping[str, Constraint], n_columns: int = 0,
-                 error: type[SymsblError] = ParameterError) -> dict:
+def check_params(
+    params: Mapping,
+    constraints: Mapping[str, Constraint],
+    n_columns: int = 0,
+    error: type[SymsblError] = ParameterError,
+) -> dict:
     """Every parameter checked against its constraint (raising ``error``); returns the validated values."""
     return {name: constraints[name].check(name, value, n_columns, error) for name, value in params.items()}
 

@@ -9,8 +9,17 @@ wording lives in one place.
 from __future__ import annotations
 
 __all__ = [
-    "SymsblError", "DataError", "LibraryError", "ExpressionError", "SimulationError", "ParameterError",
-    "MissingExtraError", "RefineWarning", "DivergenceError", "expected", "describe",
+    "SymsblError",
+    "DataError",
+    "LibraryError",
+    "ExpressionError",
+    "SimulationError",
+    "ParameterError",
+    "MissingExtraError",
+    "RefineWarning",
+    "DivergenceError",
+    "expected",
+    "describe",
 ]
 
 
@@ -90,7 +99,15 @@ def expected(name: str, what: str, received, fix: str = "", *, raw: bool = False
 
 
 # the classes are public names of symsbl: tracebacks and doctests name them so, whatever module defines them
-for _cls in (SymsblError, DataError, LibraryError, ExpressionError, SimulationError, ParameterError, MissingExtraError,
-             RefineWarning):
+for _cls in (
+    SymsblError,
+    DataError,
+    LibraryError,
+    ExpressionError,
+    SimulationError,
+    ParameterError,
+    MissingExtraError,
+    RefineWarning,
+):
     _cls.__module__ = "symsbl"
 del _cls

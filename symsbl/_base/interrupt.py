@@ -139,11 +139,16 @@ def _interrupted_starting(signum, frame):  # noqa: ARG001 - a signal handler's s
 
 def command_started() -> None:
     """SIGINT back to Python's default handler, if the start-up one is still installed."""
-    if threading.current_thread() is threading.main_thread() and \
-            signal.getsignal(signal.SIGINT) is _interrupted_starting:
+    if (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is _interrupted_starting
+    ):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-if (_command_process() and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+if (
+    _command_process()
+    and threading.current_thread() is threading.main_thread()
+    and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+):
     signal.signal(signal.SIGINT, _interrupted_starting)

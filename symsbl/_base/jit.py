@@ -126,8 +126,9 @@ def jit_lookup(key) -> ca.Function | None:
     return None
 
 
-def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
-             only_cached: bool = False, key=None) -> tuple[ca.Function, bool]:
+def jit_wrap(
+    fn: ca.Function, name: str, jit, error: type[SymsblError], *, only_cached: bool = False, key=None
+) -> tuple[ca.Function, bool]:
     """``fn`` compiled as one C function (an MX wrapper compiled with gcc), or ``fn`` itself.
 
     Compiling a wrapper around a ``map`` or ``mapaccum`` produces one C loop, which removes
@@ -160,8 +161,15 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
     cc = compiler()
     if cc is None:
         if jit is True:
-            raise error(expected("jit", "a C compiler (gcc or cc on PATH) for jit=True", "none found",
-                                 "install gcc or pass jit='auto'", raw=True))
+            raise error(
+                expected(
+                    "jit",
+                    "a C compiler (gcc or cc on PATH) for jit=True",
+                    "none found",
+                    "install gcc or pass jit='auto'",
+                    raw=True,
+                )
+            )
         return fn, False
     key = (hashlib.sha1(fn.serialize().encode()).hexdigest(), name) if key is None else key
     cached = jit_lookup(key)
@@ -176,8 +184,9 @@ def jit_wrap(fn: ca.Function, name: str, jit, error: type[SymsblError], *,
         if jit is True:
             text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)
             reason = (text.strip().splitlines() or [str(err)])[-1][:200]
-            raise error(expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'",
-                                 raw=True)) from None
+            raise error(
+                expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'", raw=True)
+            ) from None
         return fn, False
     if compiled is None:
         _SEEN.add(key)
@@ -217,8 +226,9 @@ def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = N
     try:
         with open(partial + ".c", "w") as f:
             f.write(source)
-        subprocess.run([cc, *_FLAGS, "-shared", "-fPIC", partial + ".c", "-o", partial + ".so"], check=True,
-                       capture_output=True)
+        subprocess.run(
+            [cc, *_FLAGS, "-shared", "-fPIC", partial + ".c", "-o", partial + ".so"], check=True, capture_output=True
+        )
         os.replace(partial + ".so", library)
     finally:
         for leftover in (partial + ".c", partial + ".so"):

@@ -95,8 +95,15 @@ def output_target(path, *, what: str = "path") -> OutputTarget:
     if st is not None and not stat.S_ISREG(st.st_mode):
         if stat.S_ISFIFO(st.st_mode) or stat.S_ISCHR(st.st_mode):
             return OutputTarget(path, path, True)
-        raise DataError(expected(what, "a file, a FIFO or a character device", f"{shown}, which is {_kind(st.st_mode)}",
-                                 "choose a file name", raw=True))
+        raise DataError(
+            expected(
+                what,
+                "a file, a FIFO or a character device",
+                f"{shown}, which is {_kind(st.st_mode)}",
+                "choose a file name",
+                raw=True,
+            )
+        )
     if st is not None and _via_proc(path):  # /dev/stdout redirected to a file: the open file, not its name
         return OutputTarget(path, path, True)
     real = Path(os.path.realpath(path))
@@ -104,8 +111,15 @@ def output_target(path, *, what: str = "path") -> OutputTarget:
         return OutputTarget(path, real, False)
     if not real.parent.is_dir():
         linked = f" (a symbolic link to {str(real)!r})" if path.is_symlink() else ""
-        raise DataError(expected(what, "a file in an existing directory", f"{shown}{linked}",
-                                 f"create {str(real.parent)!r} first", raw=True))
+        raise DataError(
+            expected(
+                what,
+                "a file in an existing directory",
+                f"{shown}{linked}",
+                f"create {str(real.parent)!r} first",
+                raw=True,
+            )
+        )
     return OutputTarget(path, real, False)
 
 
@@ -158,20 +172,26 @@ def safe_output(path, inputs: Sequence = (), *, what: str = "--json") -> Path:
     path = target.path
     for src in inputs:
         if src is not None and str(src) != "" and same_file(path, src):
-            raise DataError(expected(what, "an output file other than the inputs", f"{str(path)!r}, which is the "
-                                     f"input {str(src)!r}", "choose another file name; inputs are never modified",
-                                     raw=True))
+            raise DataError(
+                expected(
+                    what,
+                    "an output file other than the inputs",
+                    f"{str(path)!r}, which is the input {str(src)!r}",
+                    "choose another file name; inputs are never modified",
+                    raw=True,
+                )
+            )
     if target.through:
         if not os.access(path, os.W_OK):
-            raise DataError(expected(what, "a writable location", f"{str(path)!r}, which cannot be written",
-                                     raw=True))
+            raise DataError(expected(what, "a writable location", f"{str(path)!r}, which cannot be written", raw=True))
         return path
     try:  # the only reliable test of a directory: write to it
         with tempfile.TemporaryFile(dir=target.real.parent):
             pass
     except OSError:
-        raise DataError(expected(what, "a writable location", f"{str(path)!r}, in a directory that cannot be "
-                                 "written", raw=True)) from None
+        raise DataError(
+            expected(what, "a writable location", f"{str(path)!r}, in a directory that cannot be written", raw=True)
+        ) from None
     if target.real.exists() and not os.access(target.real, os.W_OK):
         raise DataError(expected(what, "a writable location", f"{str(path)!r}, which is read-only", raw=True))
     return path
@@ -206,8 +226,15 @@ def distinct_outputs(outputs: Sequence[tuple[str, object]]) -> None:
         if key in seen:
             first, first_path = seen[key]
             same = "" if str(first_path) == str(path) else f" (as {str(first_path)!r})"
-            raise DataError(expected(what, f"a file other than {first}'s", f"{str(path)!r}, which {first} writes "
-                                     f"too{same}", "give each output its own file", raw=True))
+            raise DataError(
+                expected(
+                    what,
+                    f"a file other than {first}'s",
+                    f"{str(path)!r}, which {first} writes too{same}",
+                    "give each output its own file",
+                    raw=True,
+                )
+            )
         seen[key] = (what, path)
 
 
@@ -227,8 +254,9 @@ def write_atomic(path, write: Callable[[IO[Any]], object], *, binary: bool = Tru
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{real.name}.", suffix=suffix or ".tmp", dir=real.parent)
     except OSError as err:
-        raise DataError(expected(str(path), "a writable location", f"an error creating it ({err.strerror})",
-                                 raw=True)) from None
+        raise DataError(
+            expected(str(path), "a writable location", f"an error creating it ({err.strerror})", raw=True)
+        ) from None
     try:
         with os.fdopen(fd, "wb" if binary else "w") as fh:
             write(fh)
@@ -259,15 +287,19 @@ def _write_through(path: Path, write: Callable[[IO[Any]], object], binary: bool)
     try:
         fd = os.dup(own) if own is not None else os.open(path, os.O_WRONLY | os.O_APPEND | getattr(os, "O_NOCTTY", 0))
     except OSError as err:
-        raise DataError(expected(str(path), "a writable location", f"an error opening it ({err.strerror})",
-                                 raw=True)) from None
+        raise DataError(
+            expected(str(path), "a writable location", f"an error opening it ({err.strerror})", raw=True)
+        ) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
     except BrokenPipeError:
         if own is None:
-            raise DataError(expected(str(path), "a reader until the end of the output", "a reader that left "
-                                     "(broken pipe)", raw=True)) from None
+            raise DataError(
+                expected(
+                    str(path), "a reader until the end of the output", "a reader that left (broken pipe)", raw=True
+                )
+            ) from None
         devnull = os.open(os.devnull, os.O_WRONLY)  # our own output's reader left (| head): the rest goes nowhere
         os.dup2(devnull, own)
         os.close(devnull)

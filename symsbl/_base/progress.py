@@ -125,8 +125,16 @@ class Progress:
     fails while writing (a closed or hung-up terminal) ends the display, never the work.
     """
 
-    def __init__(self, label: str, total: int | None = None, *, unit: str = "", stream=None,
-                 delay: float | None = None, interval: float | None = None):
+    def __init__(
+        self,
+        label: str,
+        total: int | None = None,
+        *,
+        unit: str = "",
+        stream=None,
+        delay: float | None = None,
+        interval: float | None = None,
+    ):
         self.label, self.total, self.unit = label, total, unit
         self.delay = DELAY if delay is None else delay
         self.interval = INTERVAL if interval is None else interval

@@ -28,8 +28,16 @@ import sympy as sp
 from .checks import choice, number
 from .errors import ParameterError, expected
 
-__all__ = ["SelectionRule", "PENALTIES", "MODEL_CHOICES", "complexity", "nats_per_term", "multiplicity", "paired_se",
-           "mean_errors"]
+__all__ = [
+    "SelectionRule",
+    "PENALTIES",
+    "MODEL_CHOICES",
+    "complexity",
+    "nats_per_term",
+    "multiplicity",
+    "paired_se",
+    "mean_errors",
+]
 
 
 def _ebic(n_obs: float, n_candidates: float) -> float:
@@ -168,8 +176,9 @@ class SelectionRule:
         """``self``, after checking every field (called where a rule enters a computation)."""
         if isinstance(self.penalty, str):
             if self.penalty not in PENALTIES:
-                raise ParameterError(expected("selection.penalty", f"one of {sorted(PENALTIES)} or a number of nats "
-                                              ">= 0", self.penalty))
+                raise ParameterError(
+                    expected("selection.penalty", f"one of {sorted(PENALTIES)} or a number of nats >= 0", self.penalty)
+                )
         else:
             number("selection.penalty", self.penalty, low=0.0)
         number("selection.equivalence_nats", self.equivalence_nats, low=0.0)
@@ -222,9 +231,11 @@ class SelectionRule:
             gain = mean[current] - mean[k]
             if gain > paired_se(E[k], E[current]) and gain > self.min_gain * max(mean[current] - floor, 0.0):
                 current = k
-        return int(current), (f"from the simplest, a richer structure only when it lowers the cross-validated "
-                              f"error beyond one standard error and by {100 * self.min_gain:g} % of the gap to the "
-                              "noise floor")
+        return int(current), (
+            f"from the simplest, a richer structure only when it lowers the cross-validated "
+            f"error beyond one standard error and by {100 * self.min_gain:g} % of the gap to the "
+            "noise floor"
+        )
 
     @staticmethod
     def complexity(expr: sp.Expr) -> tuple[int, int, int]:

@@ -39,8 +39,12 @@ _DECIMAL_COMMA = re.compile(r"^\s*[+-]?(\d+,\d*|,\d+)([eE][+-]?\d+)?\s*$")
 
 
 #: Byte-order marks of a spreadsheet's "Unicode text" export (UTF-16) and of UTF-32, longest first.
-_BOMS = ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"), (codecs.BOM_UTF16_LE, "utf-16"),
-         (codecs.BOM_UTF16_BE, "utf-16"))
+_BOMS = (
+    (codecs.BOM_UTF32_LE, "utf-32"),
+    (codecs.BOM_UTF32_BE, "utf-32"),
+    (codecs.BOM_UTF16_LE, "utf-16"),
+    (codecs.BOM_UTF16_BE, "utf-16"),
+)
 
 
 def _decode(path: Path, raw: bytes) -> str:
@@ -54,8 +58,15 @@ def _decode(path: Path, raw: bytes) -> str:
             if "\x00" not in text:
                 return text
     if b"\x00" in raw:
-        raise DataError(expected(str(path), "a text CSV file", "binary content (NUL bytes)",
-                                 "export the record as CSV text, .npz or .mat", raw=True))
+        raise DataError(
+            expected(
+                str(path),
+                "a text CSV file",
+                "binary content (NUL bytes)",
+                "export the record as CSV text, .npz or .mat",
+                raw=True,
+            )
+        )
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -85,8 +96,9 @@ def _number_cells(cells: Sequence[str], decimal_comma: bool) -> list[float] | No
 def _csv_rows(path: Path, raw: bytes) -> tuple[list[str], list[tuple[int, list[str]]], str]:
     """Header, numbered data rows and the delimiter of a CSV file; comments, units and blanks removed."""
     text = _decode(path, raw)
-    lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()
-             and not line.lstrip().startswith("#")]
+    lines = [
+        (i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip() and not line.lstrip().startswith("#")
+    ]
     if not lines:
         raise DataError(expected(str(path), "a header row of column names", "an empty file", raw=True))
     delim = _delimiter(lines[0][1])
@@ -116,15 +128,26 @@ def _read_csv(path: Path, raw: bytes) -> dict[str, np.ndarray]:
         if len(row) > width and not any(c.strip() for c in row[width:]):
             row = row[:width]  # a trailing delimiter on data lines only
         if len(row) != width:
-            raise DataError(expected(f"{path}: line {lineno}", f"{width} fields, one per header column",
-                                     f"{len(row)} field{'s' * (len(row) != 1)}", "every row needs one value per column",
-                                     raw=True))
+            raise DataError(
+                expected(
+                    f"{path}: line {lineno}",
+                    f"{width} fields, one per header column",
+                    f"{len(row)} field{'s' * (len(row) != 1)}",
+                    "every row needs one value per column",
+                    raw=True,
+                )
+            )
         numbers = _number_cells(row, decimal_comma)
         if numbers is None:
             cells = [_number_cells([c], decimal_comma) for c in row]
             for j in (j for j, v in enumerate(cells) if v is None and j not in bad):
-                bad[j] = expected(f"{path}: column {header[j]!r} at line {lineno}", "a number", row[j].strip()
-                                  or "an empty cell", "repair or remove the row", raw=not row[j].strip())
+                bad[j] = expected(
+                    f"{path}: column {header[j]!r} at line {lineno}",
+                    "a number",
+                    row[j].strip() or "an empty cell",
+                    "repair or remove the row",
+                    raw=not row[j].strip(),
+                )
             numbers = [math.nan if v is None else v[0] for v in cells]
         values[k] = numbers
     columns = _named_columns(path, header, values.T)
@@ -155,8 +178,14 @@ _INVALID = "\x00invalid"  # columns with a cell that is not a number: the error 
 def _read_npz(path: Path, raw: bytes | None) -> dict[str, np.ndarray]:
     source = path if raw is None else io.BytesIO(raw)
     if not zipfile.is_zipfile(source):
-        raise DataError(expected(str(path), "a readable .npz file (a zip archive written by numpy.savez)",
-                                 "a file that is not a zip archive", raw=True))
+        raise DataError(
+            expected(
+                str(path),
+                "a readable .npz file (a zip archive written by numpy.savez)",
+                "a file that is not a zip archive",
+                raw=True,
+            )
+        )
     if isinstance(source, io.BytesIO):
         source.seek(0)
     try:
@@ -172,8 +201,15 @@ def _read_mat(path: Path, raw: bytes | None) -> dict[str, np.ndarray]:
     try:
         content = loadmat(str(path) if raw is None else io.BytesIO(raw))
     except Exception as err:  # noqa: BLE001 - scipy raises many kinds on corrupt files
-        raise DataError(expected(str(path), "a readable MATLAB .mat file (v4-v7.2)", _reason(err),
-                                 "save with -v7 or export CSV", raw=True)) from None
+        raise DataError(
+            expected(
+                str(path),
+                "a readable MATLAB .mat file (v4-v7.2)",
+                _reason(err),
+                "save with -v7 or export CSV",
+                raw=True,
+            )
+        ) from None
     return {k: np.asarray(v) for k, v in content.items() if not k.startswith("__")}
 
 
@@ -199,14 +235,22 @@ def _write_mat(columns: Mapping[str, np.ndarray], fh) -> None:
 
     for name in columns:
         if not _MATLAB_NAME.match(name):
-            raise DataError(expected("column name", "a MATLAB variable name (a letter, then letters, digits or "
-                                     "underscores, at most 63 characters)", name, "rename it or write .csv/.npz"))
+            raise DataError(
+                expected(
+                    "column name",
+                    "a MATLAB variable name (a letter, then letters, digits or underscores, at most 63 characters)",
+                    name,
+                    "rename it or write .csv/.npz",
+                )
+            )
     savemat(fh, {k: np.asarray(v)[:, None] for k, v in columns.items()})
 
 
 #: Readers and writers by file extension.
 FORMATS: dict[str, tuple[Callable, Callable]] = {
-    ".csv": (_read_csv, _write_csv), ".npz": (_read_npz, _write_npz), ".mat": (_read_mat, _write_mat),
+    ".csv": (_read_csv, _write_csv),
+    ".npz": (_read_npz, _write_npz),
+    ".mat": (_read_mat, _write_mat),
 }
 
 
@@ -214,8 +258,11 @@ def _format(path: Path):
     try:
         return FORMATS[path.suffix.lower()]
     except KeyError:
-        raise DataError(expected(str(path), f"a file ending in one of {sorted(FORMATS)}",
-                                 f"the extension {path.suffix!r}", raw=True)) from None
+        raise DataError(
+            expected(
+                str(path), f"a file ending in one of {sorted(FORMATS)}", f"the extension {path.suffix!r}", raw=True
+            )
+        ) from None
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
@@ -249,13 +296,26 @@ def column_names(columns: Mapping[str, np.ndarray]) -> list[str]:
 def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndarray:
     dupes = cast("dict[str, list[int]]", columns.get(_DUPLICATES, {}))
     if name in dupes:
-        raise DataError(expected(f"{path}: column {name!r}", "one column of that name",
-                                 f"{len(dupes[name])} columns named {name!r} (positions {dupes[name]})",
-                                 "rename the duplicates in the header", raw=True))
+        raise DataError(
+            expected(
+                f"{path}: column {name!r}",
+                "one column of that name",
+                f"{len(dupes[name])} columns named {name!r} (positions {dupes[name]})",
+                "rename the duplicates in the header",
+                raw=True,
+            )
+        )
     if name not in columns:
         available = column_names(columns)
-        raise DataError(expected(f"{path}: column {name!r}", f"a column among {available}", "no such column",
-                                 "check --states/--inputs/--time against the header", raw=True))
+        raise DataError(
+            expected(
+                f"{path}: column {name!r}",
+                f"a column among {available}",
+                "no such column",
+                "check --states/--inputs/--time against the header",
+                raw=True,
+            )
+        )
     message = cast("dict[str, str]", columns.get(_INVALID, {})).get(name)
     if message is not None:  # the first cell of the column that is not a number, worded as it was read
         raise DataError(message)
@@ -263,8 +323,14 @@ def _vector(columns: Mapping[str, np.ndarray], name: str, path: Path) -> np.ndar
     if arr.ndim == 2 and 1 in arr.shape:  # MATLAB stores vectors as 1xN or Nx1
         arr = arr.ravel()
     if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
-        raise DataError(expected(f"{path}: column {name!r}", "a real numeric vector (N, 1xN or Nx1)",
-                                 f"shape {arr.shape} and dtype {arr.dtype}", raw=True))
+        raise DataError(
+            expected(
+                f"{path}: column {name!r}",
+                "a real numeric vector (N, 1xN or Nx1)",
+                f"shape {arr.shape} and dtype {arr.dtype}",
+                raw=True,
+            )
+        )
     return arr.astype(float)
 
 
@@ -279,8 +345,11 @@ def _time(columns, time, fs, n, path) -> np.ndarray:
         return np.arange(n) / fs
     t = _vector(columns, time, path)
     if t.size != n:
-        raise DataError(expected(f"{path}: time column {time!r}", f"{n} samples like the data columns",
-                                 f"{t.size} samples", raw=True))
+        raise DataError(
+            expected(
+                f"{path}: time column {time!r}", f"{n} samples like the data columns", f"{t.size} samples", raw=True
+            )
+        )
     if fs is None:
         return t
     # A time column rounded to a coarse resolution: trust fs, check the column agrees with it.
@@ -288,9 +357,15 @@ def _time(columns, time, fs, n, path) -> np.ndarray:
     step = float(np.max(np.abs(np.diff(t)))) if n > 1 else 0.0
     worst = float(np.max(np.abs(t - grid))) if n else 0.0
     if not np.isfinite(worst) or worst > max(step, 1.0 / fs):
-        raise DataError(expected(
-            f"{path}: time column {time!r}", f"times within one step of a uniform {fs:g} Hz grid (--fs)",
-            f"a deviation of {worst:.3g} s", "check --fs, or leave it out to use the time column", raw=True))
+        raise DataError(
+            expected(
+                f"{path}: time column {time!r}",
+                f"times within one step of a uniform {fs:g} Hz grid (--fs)",
+                f"a deviation of {worst:.3g} s",
+                "check --fs, or leave it out to use the time column",
+                raw=True,
+            )
+        )
     return grid
 
 
@@ -348,8 +423,15 @@ def read_trajectory(
     return columns_trajectory(read_columns(path), path, states=states, inputs=inputs, time=time, fs=fs)
 
 
-def columns_trajectory(columns: Mapping[str, np.ndarray], path: str | Path, *, states: Sequence[str],
-                       inputs: Sequence[str] = (), time: str | None = "t", fs: float | None = None) -> Trajectory:
+def columns_trajectory(
+    columns: Mapping[str, np.ndarray],
+    path: str | Path,
+    *,
+    states: Sequence[str],
+    inputs: Sequence[str] = (),
+    time: str | None = "t",
+    fs: float | None = None,
+) -> Trajectory:
     """The trajectory :func:`read_trajectory` reads, from the columns :func:`read_columns` returned for ``path``
     (a file read once, as a FIFO must be)."""
     path = Path(path)

@@ -15,8 +15,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["effective_fraction", "ljung_box", "cross_correlation", "ResidualTest", "residual_test", "prewhitening",
-           "innovations", "LEVEL"]
+__all__ = [
+    "effective_fraction",
+    "ljung_box",
+    "cross_correlation",
+    "ResidualTest",
+    "residual_test",
+    "prewhitening",
+    "innovations",
+    "LEVEL",
+]
 
 
 def effective_fraction(r: np.ndarray, max_lag: int = 50) -> float:
@@ -53,7 +61,7 @@ def _autocovariance(x: np.ndarray, max_lag: int) -> np.ndarray:
     """``R(k) = 1/N sum_t x_t x_{t-k}``, ``k = 0..max_lag``, of the centred ``x``."""
     x = x - x.mean()
     n = x.size
-    return np.array([float(x[:n - k] @ x[k:]) / n for k in range(max_lag + 1)])
+    return np.array([float(x[: n - k] @ x[k:]) / n for k in range(max_lag + 1)])
 
 
 def ljung_box(e: np.ndarray, lags: int = 25, n_params: int = 0) -> tuple[float, float]:
@@ -96,7 +104,7 @@ def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int = 25) -> tuple[np.
     scale = np.sqrt(float(e @ e) / n * float(u @ u) / n)
     rho = np.empty(2 * lags + 1)
     for i, tau in enumerate(range(-lags, lags + 1)):
-        rho[i] = (float(e[tau:] @ u[:n - tau]) if tau >= 0 else float(e[:n + tau] @ u[-tau:])) / n
+        rho[i] = (float(e[tau:] @ u[: n - tau]) if tau >= 0 else float(e[: n + tau] @ u[-tau:])) / n
     rho = rho / scale if scale > 0 else np.zeros_like(rho)
     re, ru = _autocovariance(e, lags), _autocovariance(u, lags)
     w = 1.0 - np.arange(lags + 1) / (lags + 1)
@@ -157,11 +165,15 @@ class ResidualTest:
 
     def summary(self) -> str:
         """One line: the three verdicts with their statistics."""
-        parts = [f"{self.channel}: innovations {'white' if self.white else 'correlated'} "
-                 f"(Ljung-Box p = {self.whiteness_p:.2g})"]
+        parts = [
+            f"{self.channel}: innovations {'white' if self.white else 'correlated'} "
+            f"(Ljung-Box p = {self.whiteness_p:.2g})"
+        ]
         for name, r in self.input_ratio.items():
-            parts.append(f"{'independent of' if r <= 1 else 'correlated with'} {name} ({r:.2g} x the "
-                         f"{100 * (1 - LEVEL):g} % threshold)")
+            parts.append(
+                f"{'independent of' if r <= 1 else 'correlated with'} {name} ({r:.2g} x the "
+                f"{100 * (1 - LEVEL):g} % threshold)"
+            )
         for name, r in self.feedback_ratio.items():
             if r > 1:
                 parts.append(f"feedback from past residuals to {name} ({r:.2g} x the threshold)")
@@ -181,7 +193,7 @@ def prewhitening(u: np.ndarray, max_order: int = PREWHITEN_ORDER) -> np.ndarray:
     n = x.size
     best, best_bic = np.ones(1), n * np.log(max(float(x @ x) / n, 1e-300))
     for p in range(1, min(max_order, n // 10) + 1):
-        X = np.column_stack([x[max_order - i:n - i] for i in range(1, p + 1)])
+        X = np.column_stack([x[max_order - i : n - i] for i in range(1, p + 1)])
         y = x[max_order:]
         coef, *_ = np.linalg.lstsq(X, y, rcond=None)
         var = float(np.mean((y - X @ coef) ** 2))
@@ -197,12 +209,13 @@ def innovations(r: np.ndarray, a: np.ndarray) -> np.ndarray:
     p = a.size
     e = r[p:].copy()
     for i in range(1, p + 1):
-        e += a[i - 1] * r[p - i:r.size - i]
+        e += a[i - 1] * r[p - i : r.size - i]
     return e
 
 
-def residual_test(channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_params: int = 0,
-                  family: int = 1) -> ResidualTest:
+def residual_test(
+    channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_params: int = 0, family: int = 1
+) -> ResidualTest:
     """Whiteness of the residual ``e`` and its independence of each input in ``inputs`` (name -> samples aligned
     with ``e``), at the family-wise level :data:`LEVEL` (Sidak over each test's lags, and over ``family``
     tests of the same kind: the channels times the inputs). Each input and the residual are first filtered by
@@ -217,7 +230,7 @@ def residual_test(channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_p
         rho, band = cross_correlation(innovations(e, a[1:]), innovations(u, a[1:]), lags)
         ratio = np.abs(rho) / (z * band)
         inside[name] = float(np.max(ratio[lags:]))
-        feedback[name] = float(np.max(ratio[:lags - SPLINE_LAGS]))
+        feedback[name] = float(np.max(ratio[: lags - SPLINE_LAGS]))
     return ResidualTest(channel, int(e.size), p, inside, feedback, lags, predictable(e, lags))
 
 
@@ -227,7 +240,7 @@ def predictable(e: np.ndarray, lags: int = 25) -> float:
     n = x.size
     if n <= 4 * lags:
         return 0.0
-    X = np.column_stack([x[lags - i:n - i] for i in range(1, lags + 1)])
+    X = np.column_stack([x[lags - i : n - i] for i in range(1, lags + 1)])
     y = x[lags:]
     coef, *_ = np.linalg.lstsq(X, y, rcond=None)
     total = float(y @ y)

@@ -42,8 +42,9 @@ def _as_matrix(values, n_cols: int, what: str) -> np.ndarray:
     if arr.ndim == 1 and n_cols == 0 and arr.size == 0:
         arr = arr.reshape(0, 0)
     if arr.ndim != 2 or arr.shape[1] != n_cols:
-        raise DataError(expected(what, f"shape (n_samples, {n_cols}), one column per name", f"shape {arr.shape}",
-                                 raw=True))
+        raise DataError(
+            expected(what, f"shape (n_samples, {n_cols}), one column per name", f"shape {arr.shape}", raw=True)
+        )
     return arr
 
 
@@ -62,9 +63,15 @@ def _check_values(pre: str, names, columns) -> None:
     for name, col in zip(names, columns):
         bad = np.flatnonzero(~np.isfinite(col))
         if bad.size:
-            raise DataError(expected(f"{pre}column {name!r}", "finite values",
-                                     f"{col[bad[0]]} at row {bad[0]} ({bad.size} non-finite in total)",
-                                     "remove or repair those rows", raw=True))
+            raise DataError(
+                expected(
+                    f"{pre}column {name!r}",
+                    "finite values",
+                    f"{col[bad[0]]} at row {bad[0]} ({bad.size} non-finite in total)",
+                    "remove or repair those rows",
+                    raw=True,
+                )
+            )
 
 
 def check_magnitude(traj: Trajectory, source: str = "") -> None:
@@ -74,9 +81,15 @@ def check_magnitude(traj: Trajectory, source: str = "") -> None:
     for name, col in zip(traj.state_names + traj.input_names, (*traj.states.T, *traj.inputs.T)):
         big = np.flatnonzero(np.abs(col) > MAX_MAGNITUDE)
         if big.size:
-            raise DataError(expected(f"{pre}column {name!r}", f"magnitudes below {MAX_MAGNITUDE:g}",
-                                     f"{col[big[0]]:g} at row {big[0]}", "rescale the column (other units)",
-                                     raw=True))
+            raise DataError(
+                expected(
+                    f"{pre}column {name!r}",
+                    f"magnitudes below {MAX_MAGNITUDE:g}",
+                    f"{col[big[0]]:g} at row {big[0]}",
+                    "rescale the column (other units)",
+                    raw=True,
+                )
+            )
 
 
 def _check_time(pre: str, t: np.ndarray, time_rtol: float) -> None:
@@ -84,17 +97,28 @@ def _check_time(pre: str, t: np.ndarray, time_rtol: float) -> None:
     bad = np.flatnonzero(steps <= 0)
     if bad.size:
         i = bad[0] + 1
-        raise DataError(expected(f"{pre}time", "strictly increasing values",
-                                 f"t = {float(t[i])!r} at row {i} after t = {float(t[i - 1])!r}",
-                                 "sort the rows or pass --fs/fs for a rounded time column", raw=True))
+        raise DataError(
+            expected(
+                f"{pre}time",
+                "strictly increasing values",
+                f"t = {float(t[i])!r} at row {i} after t = {float(t[i - 1])!r}",
+                "sort the rows or pass --fs/fs for a rounded time column",
+                raw=True,
+            )
+        )
     dt = (t[-1] - t[0]) / (t.size - 1)
     dev = np.abs(steps - dt) / dt
     worst = int(np.argmax(dev))
     if dev[worst] > time_rtol:
-        raise DataError(expected(
-            f"{pre}time", f"uniform sampling (steps within {time_rtol:g} of the mean step {float(dt)!r})",
-            f"a step of {float(steps[worst])!r} before row {worst + 1} (relative deviation {dev[worst]:.3g})",
-            "resample onto a uniform grid, or pass --fs/fs when the time column is only rounded", raw=True))
+        raise DataError(
+            expected(
+                f"{pre}time",
+                f"uniform sampling (steps within {time_rtol:g} of the mean step {float(dt)!r})",
+                f"a step of {float(steps[worst])!r} before row {worst + 1} (relative deviation {dev[worst]:.3g})",
+                "resample onto a uniform grid, or pass --fs/fs when the time column is only rounded",
+                raw=True,
+            )
+        )
 
 
 def validate(
@@ -139,8 +163,14 @@ def validate(
     input_names = _check_names(input_names, "input names")
     _check_names(state_names + input_names, "state and input names together")
     if "t" in state_names + input_names:
-        raise DataError(expected("names", "state and input names other than 't' (the time column)",
-                                 list(state_names + input_names), "rename that state or input"))
+        raise DataError(
+            expected(
+                "names",
+                "state and input names other than 't' (the time column)",
+                list(state_names + input_names),
+                "rename that state or input",
+            )
+        )
     try:
         t = np.array(t, dtype=float)
     except (TypeError, ValueError):
@@ -151,8 +181,9 @@ def validate(
     inputs = _as_matrix(np.empty((t.size, 0)) if inputs is None else inputs, len(input_names), pre + "inputs")
     for what, arr in (("states", states), ("inputs", inputs)):
         if arr.shape[0] != t.size:
-            raise DataError(expected(pre + what, f"one row per time sample ({t.size})", f"{arr.shape[0]} rows",
-                                     raw=True))
+            raise DataError(
+                expected(pre + what, f"one row per time sample ({t.size})", f"{arr.shape[0]} rows", raw=True)
+            )
     if t.size < 2:
         raise DataError(expected(pre + "trajectory", "at least 2 samples", f"{t.size}", raw=True))
     _check_values(pre, ("time",) + state_names + input_names, (t, *states.T, *inputs.T))
@@ -208,9 +239,15 @@ class Trajectory:
     diverged_at: float | None = field(default=None)
 
     # Written out because ``inputs`` accepts None but always holds an array once validated.
-    def __init__(self, t: np.ndarray, states: np.ndarray, inputs: np.ndarray | None = None,
-                 state_names: Sequence[str] = (), input_names: Sequence[str] = (),
-                 diverged_at: float | None = None) -> None:
+    def __init__(
+        self,
+        t: np.ndarray,
+        states: np.ndarray,
+        inputs: np.ndarray | None = None,
+        state_names: Sequence[str] = (),
+        input_names: Sequence[str] = (),
+        diverged_at: float | None = None,
+    ) -> None:
         t, states, inputs = validate(t, states, inputs, state_names, input_names)
         object.__setattr__(self, "t", _frozen(t))
         object.__setattr__(self, "states", _frozen(states))
@@ -222,8 +259,10 @@ class Trajectory:
     def __repr__(self) -> str:
         span = f"{self.t[0]:.6g} to {self.t[-1]:.6g} s"
         end = "" if self.diverged_at is None else f", diverged_at={self.diverged_at:.6g}"
-        return (f"Trajectory({self.n_samples} samples, {span} at {self.fs:.6g} Hz, states={list(self.state_names)}, "
-                f"inputs={list(self.input_names)}{end})")
+        return (
+            f"Trajectory({self.n_samples} samples, {span} at {self.fs:.6g} Hz, states={list(self.state_names)}, "
+            f"inputs={list(self.input_names)}{end})"
+        )
 
     @property
     def n_samples(self) -> int:
@@ -351,7 +390,7 @@ def spectral_noise_std(x: np.ndarray) -> float:
         return 0.0
     w = np.hanning(x.size)
     power = np.abs(np.fft.rfft((x - x.mean()) * w)) ** 2
-    upper = power[power.size // 2:-1]
+    upper = power[power.size // 2 : -1]
     return float(math.sqrt(np.median(upper) / (math.log(2.0) * float(w @ w))))
 
 

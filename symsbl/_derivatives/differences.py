@@ -137,8 +137,9 @@ class SavitzkyGolay(_Pointwise):
     def targets(self, t: np.ndarray, X: np.ndarray) -> np.ndarray:
         """Derivative estimate, shape ``(n_samples, n_states)``."""
         if self.window % 2 == 0 or self.window <= self.polyorder:
-            raise ParameterError(expected("SavitzkyGolay.window",
-                                          f"an odd number greater than polyorder={self.polyorder}", self.window))
+            raise ParameterError(
+                expected("SavitzkyGolay.window", f"an odd number greater than polyorder={self.polyorder}", self.window)
+            )
         X, h = _check(t, X, self.window)
         from scipy.signal import savgol_filter  # scipy.signal costs ~1 s to import: only when used
 

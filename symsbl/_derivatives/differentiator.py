@@ -21,11 +21,24 @@ def check_samples(t: np.ndarray, X: np.ndarray, min_samples: int) -> tuple[np.nd
         X = X[:, None]
     t = np.asarray(t, dtype=float)
     if t.ndim != 1 or X.ndim != 2 or len(t) != len(X):
-        raise DataError(expected("t, X", "shapes (n_samples,) and (n_samples, n_states)",
-                                 f"t.shape={t.shape}, X.shape={X.shape}", raw=True))
+        raise DataError(
+            expected(
+                "t, X",
+                "shapes (n_samples,) and (n_samples, n_states)",
+                f"t.shape={t.shape}, X.shape={X.shape}",
+                raw=True,
+            )
+        )
     if len(t) < min_samples:
-        raise DataError(expected("X", f"at least {min_samples} samples for this differentiator", f"{len(t)}",
-                                 "use a longer record or a shorter window", raw=True))
+        raise DataError(
+            expected(
+                "X",
+                f"at least {min_samples} samples for this differentiator",
+                f"{len(t)}",
+                "use a longer record or a shorter window",
+                raw=True,
+            )
+        )
     return X, float(t[1] - t[0])
 
 

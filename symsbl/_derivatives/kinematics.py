@@ -22,8 +22,17 @@ from .._base.errors import DataError, expected
 from .._data.trajectory import Trajectory
 from .weakform import WeakForm
 
-__all__ = ["parse_kinematics", "kinematic_triples", "estimate_velocity", "latent_states", "complete_states",
-           "with_velocities", "integrate", "band_edges", "completed_columns"]
+__all__ = [
+    "parse_kinematics",
+    "kinematic_triples",
+    "estimate_velocity",
+    "latent_states",
+    "complete_states",
+    "with_velocities",
+    "integrate",
+    "band_edges",
+    "completed_columns",
+]
 
 
 def _entries(spec) -> list:
@@ -36,8 +45,14 @@ def _entries(spec) -> list:
         for part in filter(None, (p.strip() for p in spec.split(","))):
             names = [n.strip() for n in part.split(":")]
             if len(names) not in (2, 3) or not all(names):
-                raise DataError(expected("--kinematics", "position:velocity pairs such as x1:x2,x3:x4, each with an "
-                                         "acceleration column as a third name if one is measured (x1:x2:a1)", part))
+                raise DataError(
+                    expected(
+                        "--kinematics",
+                        "position:velocity pairs such as x1:x2,x3:x4, each with an "
+                        "acceleration column as a third name if one is measured (x1:x2:a1)",
+                        part,
+                    )
+                )
             out.append(tuple(names))
         return out
     if isinstance(spec, Mapping):
@@ -48,8 +63,14 @@ def _entries(spec) -> list:
             else:
                 out.append((x, v))
         return out
-    raise DataError(expected("kinematics", "a mapping {position: velocity} (or {position: (velocity, "
-                             "acceleration)}) or text 'x1:x2' / 'x1:x2:a1'", type(spec).__name__, raw=True))
+    raise DataError(
+        expected(
+            "kinematics",
+            "a mapping {position: velocity} (or {position: (velocity, acceleration)}) or text 'x1:x2' / 'x1:x2:a1'",
+            type(spec).__name__,
+            raw=True,
+        )
+    )
 
 
 def _pairs(spec) -> list:
@@ -69,8 +90,9 @@ def parse_kinematics(spec, states: Sequence[str]) -> tuple[tuple[str, str], ...]
     used: set = set()
     for x, v in pairs:
         if x not in states or v not in states or x == v:
-            raise DataError(expected("kinematics", f"position: velocity pairs of the states {list(states)}",
-                                     f"{x}:{v}", raw=True))
+            raise DataError(
+                expected("kinematics", f"position: velocity pairs of the states {list(states)}", f"{x}:{v}", raw=True)
+            )
         if x in used or v in used:
             raise DataError(expected("kinematics", "each state in at most one pair", f"{x}:{v}", raw=True))
         used |= {x, v}
@@ -94,8 +116,14 @@ def kinematic_triples(spec, states: Sequence[str]) -> tuple[tuple[str, str, str 
     for (x, v), entry in zip(pairs, entries):
         a = entry[2] if len(entry) == 3 else None
         if a is not None and (a in states or a in seen or a == "t"):
-            raise DataError(expected("kinematics", "an acceleration column named unlike the states and the other "
-                                     "accelerations", f"{x}:{v}:{a}", raw=True))
+            raise DataError(
+                expected(
+                    "kinematics",
+                    "an acceleration column named unlike the states and the other accelerations",
+                    f"{x}:{v}:{a}",
+                    raw=True,
+                )
+            )
         if a is not None:
             seen.add(a)
         out.append((x, v, a))
@@ -202,7 +230,7 @@ def band_edges(t: np.ndarray, y: np.ndarray, integrations: int = 0) -> tuple[flo
     power = np.abs(np.fft.rfft(y * np.hanning(n))) ** 2
     f = np.fft.rfftfreq(n, float(t[1] - t[0]))
     # the noise floor, or (a noise-free signal) the window's leakage eight decades below the peak
-    floor = max(float(np.median(power[power.size // 2:])) if power.size > 8 else 0.0, 1e-8 * float(power.max()))
+    floor = max(float(np.median(power[power.size // 2 :])) if power.size > 8 else 0.0, 1e-8 * float(power.max()))
     # the first bins hold the window's leakage of a trend or a start from rest, not a band a record resolves
     signal = np.flatnonzero((power > 20.0 * floor) & (np.arange(f.size) >= LOW_BINS))
     if not signal.size:
@@ -274,8 +302,9 @@ def completed_columns(record: Trajectory, states: Sequence[str], triples) -> dic
     return out
 
 
-def complete_states(trajectories: Sequence[Trajectory], states: Sequence[str], pairs, accelerations=(),
-                    keep: Sequence[str] = ()) -> tuple[list[Trajectory], tuple[str, ...]]:
+def complete_states(
+    trajectories: Sequence[Trajectory], states: Sequence[str], pairs, accelerations=(), keep: Sequence[str] = ()
+) -> tuple[list[Trajectory], tuple[str, ...]]:
     """The records with every state of ``states`` (then the columns ``keep``), the members of each kinematic pair
     that a record lacks reconstructed from those it holds (:func:`completed_columns`).
 
@@ -299,13 +328,25 @@ def complete_states(trajectories: Sequence[Trajectory], states: Sequence[str], p
     in_pair = {n for x, v in pairs for n in (x, v)}
     for s in unmeasured:
         if s not in in_pair:
-            raise DataError(expected(
-                f"state {s!r}", "a column of the data, or a member of a declared kinematic pair (x:v)",
-                "neither", f"add --kinematics {next(iter(measured), 'x')}:{s} if {s} is a velocity", raw=True))
+            raise DataError(
+                expected(
+                    f"state {s!r}",
+                    "a column of the data, or a member of a declared kinematic pair (x:v)",
+                    "neither",
+                    f"add --kinematics {next(iter(measured), 'x')}:{s} if {s} is a velocity",
+                    raw=True,
+                )
+            )
         x, v = next((x, v) for x, v in pairs if s in (x, v))
         if not ({x, v, acc.get(v)} & set(measured)):
-            raise DataError(expected(f"state {s!r}", f"its pair's position {x!r}, velocity {v!r} or acceleration "
-                                     "measured", "no such column", raw=True))
+            raise DataError(
+                expected(
+                    f"state {s!r}",
+                    f"its pair's position {x!r}, velocity {v!r} or acceleration measured",
+                    "no such column",
+                    raw=True,
+                )
+            )
     if not unmeasured and not keep:
         return [tr.with_states(states) for tr in trajectories], ()
     out = []

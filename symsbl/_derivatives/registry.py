@@ -61,5 +61,8 @@ def get_differentiator(spec: str | Differentiator) -> Differentiator:
         raise ParameterError(expected("derivative", f"one of {list(DIFFERENTIATORS)}", spec))
     if isinstance(spec, Differentiator):
         return spec
-    raise ParameterError(expected("derivative", f"one of {list(DIFFERENTIATORS)} or a Differentiator instance",
-                                  type(spec).__name__, raw=True))
+    raise ParameterError(
+        expected(
+            "derivative", f"one of {list(DIFFERENTIATORS)} or a Differentiator instance", type(spec).__name__, raw=True
+        )
+    )

@@ -81,10 +81,15 @@ def _whitening(w_dphi: tuple, stride: int, overlap: int) -> tuple[np.ndarray, np
         if size >= MAX_WHITENING_TAPS:
             break
         size *= 2
-    raise ParameterError(expected(
-        "WeakForm.overlap", f"an overlap whose rows a filter of at most {MAX_WHITENING_TAPS} taps whitens",
-        f"{overlap} (with windows every {stride} samples the noise the rows share is singular to rounding)",
-        "use 2 (half overlap) or 3", raw=True))
+    raise ParameterError(
+        expected(
+            "WeakForm.overlap",
+            f"an overlap whose rows a filter of at most {MAX_WHITENING_TAPS} taps whitens",
+            f"{overlap} (with windows every {stride} samples the noise the rows share is singular to rounding)",
+            "use 2 (half overlap) or 3",
+            raw=True,
+        )
+    )
 
 
 @dataclass(frozen=True)
@@ -161,8 +166,7 @@ class WeakForm(Differentiator):
     def _length(self) -> int:
         """The window, which must have been resolved from data."""
         if self.window is None:
-            raise ParameterError(expected("WeakForm.window", "a window resolved from data (call resolve(t, X))",
-                                          None))
+            raise ParameterError(expected("WeakForm.window", "a window resolved from data (call resolve(t, X))", None))
         return self.window
 
     @property
@@ -227,9 +231,15 @@ class WeakForm(Differentiator):
         window = max(4, min(window, most))
         q = self.overlap
         if 2 * q > n - 1:
-            raise ParameterError(expected("WeakForm.overlap", f"at most {(n - 1) // 2} for a record of {n} samples (a "
-                                          "window spans at least 2 x overlap sample intervals)", q,
-                                          "use 2 (half overlap) or 3"))
+            raise ParameterError(
+                expected(
+                    "WeakForm.overlap",
+                    f"at most {(n - 1) // 2} for a record of {n} samples (a "
+                    "window spans at least 2 x overlap sample intervals)",
+                    q,
+                    "use 2 (half overlap) or 3",
+                )
+            )
         return WeakForm(window=max(q * round(window / q), 4 if q == 1 else 2 * q), power=self.power, overlap=q)
 
     @property
@@ -242,8 +252,11 @@ class WeakForm(Differentiator):
         if self.window is None:
             raise ParameterError(expected("WeakForm.window", "a window resolved from data (call resolve(t, X))", None))
         if self.window < 4 or self.power < 2:
-            raise ParameterError(expected("WeakForm", "window >= 4 and power >= 2",
-                                          f"window={self.window}, power={self.power}", raw=True))
+            raise ParameterError(
+                expected(
+                    "WeakForm", "window >= 4 and power >= 2", f"window={self.window}, power={self.power}", raw=True
+                )
+            )
         L = self.window
         s = np.linspace(-1.0, 1.0, L + 1)
         half = 0.5 * L * h  # dt/ds

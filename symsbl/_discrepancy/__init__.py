@@ -25,6 +25,17 @@ from .results import Decision, Disagreement, DiscrepancyReport, DiscrepancyStep,
 from .workflow import discrepancy
 
 __all__ = [
-    "CATALOGUE", "Effect", "Variant", "catalogue", "DecisionRule", "parse_base", "position_record", "Decision",
-    "Disagreement", "DiscrepancyReport", "DiscrepancyStep", "EffectScore", "discrepancy",
+    "CATALOGUE",
+    "Effect",
+    "Variant",
+    "catalogue",
+    "DecisionRule",
+    "parse_base",
+    "position_record",
+    "Decision",
+    "Disagreement",
+    "DiscrepancyReport",
+    "DiscrepancyStep",
+    "EffectScore",
+    "discrepancy",
 ]

@@ -96,12 +96,16 @@ def pairs_of(base: dict, symbols: dict, declared=()) -> list[Pair]:
                 found.append((x, names[0]))
     out = [Pair(x, v, (v,), symbols[x], symbols[v]) for x, v in found]
     for i, (x1, v1) in enumerate(found):
-        for x2, v2 in found[i + 1:]:
-            deps = [ca.depends_on(ca.vertcat(*base[a]), ca.vertcat(symbols[b1], symbols[b2]))
-                    for a, (b1, b2) in ((v1, (x2, v2)), (v2, (x1, v1))) if base.get(a)]
+        for x2, v2 in found[i + 1 :]:
+            deps = [
+                ca.depends_on(ca.vertcat(*base[a]), ca.vertcat(symbols[b1], symbols[b2]))
+                for a, (b1, b2) in ((v1, (x2, v2)), (v2, (x1, v1)))
+                if base.get(a)
+            ]
             if any(deps):
-                out.append(Pair(f"{x1}-{x2}", f"{v1}-{v2}", (v1, v2), symbols[x1] - symbols[x2],
-                                symbols[v1] - symbols[v2]))
+                out.append(
+                    Pair(f"{x1}-{x2}", f"{v1}-{v2}", (v1, v2), symbols[x1] - symbols[x2], symbols[v1] - symbols[v2])
+                )
     return out
 
 
@@ -125,8 +129,9 @@ def catalogue_candidates(effects, pairs: list[Pair], symbols: dict, records) -> 
             penalty = multiplicity(len(variants))
             for w in variants:
                 label = w.label if len(pairs) == 1 else f"{w.label} [{pair.where}]"
-                out.append(Candidate(effect, label, pair, tuple((s, w.exprs) for s in pair.velocities), w.shape,
-                                     penalty))
+                out.append(
+                    Candidate(effect, label, pair, tuple((s, w.exprs) for s in pair.velocities), w.shape, penalty)
+                )
     return out
 
 
@@ -143,8 +148,24 @@ def reshaped(c: Candidate, shape: float) -> Candidate:
 
 def _library_terms(x, v) -> list:
     """Terms of one pair beyond the linear ones: products up to degree three, absolute values, an offset."""
-    out = [ca.SX(1), x**2, x * v, v**2, x**3, x**2 * v, x * v**2, v**3, ca.fabs(x), ca.fabs(v), x * ca.fabs(x),
-           v * ca.fabs(v), x * ca.fabs(v), v * ca.fabs(x), ca.sign(v), ca.sign(x)]
+    out = [
+        ca.SX(1),
+        x**2,
+        x * v,
+        v**2,
+        x**3,
+        x**2 * v,
+        x * v**2,
+        v**3,
+        ca.fabs(x),
+        ca.fabs(v),
+        x * ca.fabs(x),
+        v * ca.fabs(v),
+        x * ca.fabs(v),
+        v * ca.fabs(x),
+        ca.sign(v),
+        ca.sign(x),
+    ]
     return out
 
 

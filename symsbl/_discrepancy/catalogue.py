@@ -140,11 +140,18 @@ class Effect:
             try:
                 e = ca.SX(item)
             except (NotImplementedError, TypeError, RuntimeError):
-                raise LibraryError(expected(f"effect {self.name!r}: terms", "CasADi SX expressions of the displacement "
-                                            "and velocity symbols", type(item).__name__, raw=True)) from None
+                raise LibraryError(
+                    expected(
+                        f"effect {self.name!r}: terms",
+                        "CasADi SX expressions of the displacement and velocity symbols",
+                        type(item).__name__,
+                        raw=True,
+                    )
+                ) from None
             if not e.is_scalar():
-                raise LibraryError(expected(f"effect {self.name!r}: terms", "scalar expressions", f"shape {e.shape}",
-                                            raw=True))
+                raise LibraryError(
+                    expected(f"effect {self.name!r}: terms", "scalar expressions", f"shape {e.shape}", raw=True)
+                )
             exprs.append(e)
         if not exprs:
             raise LibraryError(expected(f"effect {self.name!r}: terms", "at least one expression", "none", raw=True))
@@ -157,21 +164,63 @@ def _clearance(x, v, g):
 
 #: The default catalogue, in report order.
 CATALOGUE: tuple[Effect, ...] = (
-    Effect("coulomb_friction", "Coulomb (dry) friction: a force of constant size opposing the velocity",
-           "friction", lambda x, v: ca.sign(v), sign=-1, coefficient="Fc"),
-    Effect("quadratic_damping", "quadratic (turbulent/drag) damping, a force v|v| opposing the velocity",
-           "damping", lambda x, v: v * ca.fabs(v), sign=-1, coefficient="c2"),
-    Effect("velocity_squared", "a force proportional to v^2 (the paper's quadratic damping, even in v)",
-           "damping", lambda x, v: v**2, sign=0, coefficient="k2"),
-    Effect("cubic_damping", "cubic damping, a force v^3 opposing the velocity", "damping",
-           lambda x, v: v**3, sign=-1, coefficient="c3"),
-    Effect("cubic_stiffness", "cubic (Duffing) stiffness, a hardening or softening spring force x^3",
-           "stiffness", lambda x, v: x**3, sign=0, coefficient="k3"),
-    Effect("quadratic_stiffness", "quadratic stiffness, a symmetric spring force x|x|", "stiffness",
-           lambda x, v: x * ca.fabs(x), sign=0, coefficient="kq"),
-    Effect("clearance", "a clearance (backlash/contact): a spring that engages beyond a gap g",
-           "clearance", _clearance, sign=-1, grid=tuple(round(0.1 * i, 1) for i in range(1, 10)),
-           coefficient="kg"),
+    Effect(
+        "coulomb_friction",
+        "Coulomb (dry) friction: a force of constant size opposing the velocity",
+        "friction",
+        lambda x, v: ca.sign(v),
+        sign=-1,
+        coefficient="Fc",
+    ),
+    Effect(
+        "quadratic_damping",
+        "quadratic (turbulent/drag) damping, a force v|v| opposing the velocity",
+        "damping",
+        lambda x, v: v * ca.fabs(v),
+        sign=-1,
+        coefficient="c2",
+    ),
+    Effect(
+        "velocity_squared",
+        "a force proportional to v^2 (the paper's quadratic damping, even in v)",
+        "damping",
+        lambda x, v: v**2,
+        sign=0,
+        coefficient="k2",
+    ),
+    Effect(
+        "cubic_damping",
+        "cubic damping, a force v^3 opposing the velocity",
+        "damping",
+        lambda x, v: v**3,
+        sign=-1,
+        coefficient="c3",
+    ),
+    Effect(
+        "cubic_stiffness",
+        "cubic (Duffing) stiffness, a hardening or softening spring force x^3",
+        "stiffness",
+        lambda x, v: x**3,
+        sign=0,
+        coefficient="k3",
+    ),
+    Effect(
+        "quadratic_stiffness",
+        "quadratic stiffness, a symmetric spring force x|x|",
+        "stiffness",
+        lambda x, v: x * ca.fabs(x),
+        sign=0,
+        coefficient="kq",
+    ),
+    Effect(
+        "clearance",
+        "a clearance (backlash/contact): a spring that engages beyond a gap g",
+        "clearance",
+        _clearance,
+        sign=-1,
+        grid=tuple(round(0.1 * i, 1) for i in range(1, 10)),
+        coefficient="kg",
+    ),
 )
 
 
@@ -200,8 +249,11 @@ def catalogue(extra: Sequence[Effect] = (), *, exclude: Sequence[str] = ()) -> t
     names = [e.name for e in out]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
-        raise LibraryError(expected("effects", "distinct effect names", f"{repeated} more than once",
-                                    "rename the new effect", raw=True))
+        raise LibraryError(
+            expected(
+                "effects", "distinct effect names", f"{repeated} more than once", "rename the new effect", raw=True
+            )
+        )
     return tuple(out)
 
 
@@ -217,5 +269,6 @@ def get_effect(name: str, effects: Sequence[Effect] = CATALOGUE) -> Effect:
         if e.name == name:
             return e
     close = difflib.get_close_matches(str(name), [e.name for e in effects], n=3)
-    raise LibraryError(expected("effect", f"one of {[e.name for e in effects]}", name,
-                                f"did you mean {close[0]!r}?" if close else ""))
+    raise LibraryError(
+        expected("effect", f"one of {[e.name for e in effects]}", name, f"did you mean {close[0]!r}?" if close else "")
+    )

@@ -111,8 +111,10 @@ def separating_experiment(model_a, model_b, record, measured, noise: dict, max_s
     rms = float(np.sqrt(np.mean(rec.inputs[:, 0] ** 2)))
     lo, hi = _band(rec)
     trials: list[tuple[str, float, float | None, Signal]]  # (description, scale, frequency or None, input)
-    trials = [(f"the training input scaled by {s:g} (RMS {s * rms:.3g})", s, None, Sampled(rec.t, s * rec.inputs))
-              for s in (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)]
+    trials = [
+        (f"the training input scaled by {s:g} (RMS {s * rms:.3g})", s, None, Sampled(rec.t, s * rec.inputs))
+        for s in (0.1, 0.25, 0.5, 1.0, 2.0, 4.0)
+    ]
     for f in np.geomspace(lo, hi, 6):
         for s in (0.25, 1.0, 4.0):
             amp = s * rms * math.sqrt(2)
@@ -129,5 +131,11 @@ def separating_experiment(model_a, model_b, record, measured, noise: dict, max_s
         return None
     given = next((d for d, _, s, f in scored if s == 1.0 and f is None), math.nan)
     best = max(scored, key=lambda item: item[0])
-    return {"input": best[1], "scale": best[2], "frequency_hz": best[3], "difference_noise_std": best[0],
-            "difference_on_training_input": given, "duration_s": float(rec.t[-1] - rec.t[0])}
+    return {
+        "input": best[1],
+        "scale": best[2],
+        "frequency_hz": best[3],
+        "difference_noise_std": best[0],
+        "difference_on_training_input": given,
+        "duration_s": float(rec.t[-1] - rec.t[0]),
+    }

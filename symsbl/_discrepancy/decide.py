@@ -120,8 +120,14 @@ def null_gains(design, structure, model, train, velocity, candidates, noise, n_b
     x0 = train.states[0]
     out: list[float] = []
     try:
-        clean = simulate(system, train.t, inputs=None if U is None else Sampled(train.t, U), x0=x0, method="rk4",
-                         on_divergence="raise")
+        clean = simulate(
+            system,
+            train.t,
+            inputs=None if U is None else Sampled(train.t, U),
+            x0=x0,
+            method="rk4",
+            on_divergence="raise",
+        )
     except SimulationError:
         return out
     rng = np.random.default_rng(seed)
@@ -147,29 +153,59 @@ def effect_scores(run, model, bar) -> list[EffectScore]:
     for variant, gain, fit, cols in best_per_effect(scored).values():
         e = variant.effect
         if fit is None:
-            out.append(EffectScore(e.name, variant.label, e.description, e.family, tuple(str(x) for x in variant.exprs),
-                                   -math.inf, math.nan, math.nan, None, False, "already in the model", None,
-                                   variant.shape))
+            out.append(
+                EffectScore(
+                    e.name,
+                    variant.label,
+                    e.description,
+                    e.family,
+                    tuple(str(x) for x in variant.exprs),
+                    -math.inf,
+                    math.nan,
+                    math.nan,
+                    None,
+                    False,
+                    "already in the model",
+                    None,
+                    variant.shape,
+                )
+            )
             continue
         i = len(run.structure[run.v])
         coef, std = float(fit.coef_[i]), float(math.sqrt(fit.sigma_[i, i]))
         ok, reason = admissible(e, coef, input_coef)
-        out.append(EffectScore(e.name, variant.label, e.description, e.family,
-                               tuple(run.design.library.names[c] for c in cols[i:]), gain, coef, std,
-                               None if input_coef is None else -coef / input_coef, ok, reason, None, variant.shape))
+        out.append(
+            EffectScore(
+                e.name,
+                variant.label,
+                e.description,
+                e.family,
+                tuple(run.design.library.names[c] for c in cols[i:]),
+                gain,
+                coef,
+                std,
+                None if input_coef is None else -coef / input_coef,
+                ok,
+                reason,
+                None,
+                variant.shape,
+            )
+        )
     return sorted(out, key=lambda c: -c.evidence_gain)
 
 
 def _threshold(run, model, rule: DecisionRule, it: int, seed: int):
     """The scores of this iteration, the evidence threshold and the bootstrap's null gains."""
     replicates = rule.n_bootstrap if run.error == "simulation" else 0
-    with Progress(f"discrepancy iteration {it}: scoring the catalogue", unit="fits",
-                  total=(1 + replicates) * len(run.candidates)) as bar:
+    with Progress(
+        f"discrepancy iteration {it}: scoring the catalogue", unit="fits", total=(1 + replicates) * len(run.candidates)
+    ) as bar:
         scores = effect_scores(run, model, bar)
         null = []
         if replicates > 0:
-            null = null_gains(run.design, run.structure, model, run.data, run.v, run.candidates, run.noise,
-                              replicates, seed, bar)
+            null = null_gains(
+                run.design, run.structure, model, run.data, run.v, run.candidates, run.noise, replicates, seed, bar
+            )
     return scores, max([rule.floor_nats] + [rule.bootstrap_factor * g for g in null]), null
 
 
@@ -184,10 +220,19 @@ def decide(run, it: int, model, rule: DecisionRule, seed: int) -> DiscrepancySte
     scores, threshold, null = _threshold(run, model, rule, it, seed)
     for pos, c in enumerate(scores[:3]):  # held-out error of the leading candidates
         if c.admissible and c.evidence_gain > 0:
-            scores[pos] = dataclasses.replace(c, error_after=run.err(design.model(run.with_terms(c), data),
-                                                                     run.heldout))
-    step = dict(iteration=it, model=model, error_train=err_train, error_heldout=err_held, disagreement=where,
-                scores=tuple(scores), threshold=threshold, null_gains=tuple(null))
+            scores[pos] = dataclasses.replace(
+                c, error_after=run.err(design.model(run.with_terms(c), data), run.heldout)
+            )
+    step = dict(
+        iteration=it,
+        model=model,
+        error_train=err_train,
+        error_heldout=err_held,
+        disagreement=where,
+        scores=tuple(scores),
+        threshold=threshold,
+        null_gains=tuple(null),
+    )
     return DiscrepancyStep(**step, **_choose(run, scores, threshold, err_held, rule))
 
 
@@ -198,12 +243,18 @@ def _choose(run, scores, threshold: float, err_held: float, rule: DecisionRule) 
     runner = ranked[1] if len(ranked) > 1 else None
     if best is None or best.evidence_gain <= threshold:
         gain = "none" if best is None else f"{best.evidence_gain:.1f}"
-        return dict(decision=Decision.NOTHING_MISSING, verdict=(
-            f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats)"))
+        return dict(
+            decision=Decision.NOTHING_MISSING,
+            verdict=(f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats)"),
+        )
     if runner is not None and best.evidence_gain - runner.evidence_gain < rule.margin_nats:
-        return dict(decision=Decision.AMBIGUOUS, verdict=(
-            f"ambiguous between {best.effect} and {runner.effect}: evidence gains {best.evidence_gain:.1f} "
-            f"and {runner.evidence_gain:.1f} nats differ by less than {rule.margin_nats:g}"))
+        return dict(
+            decision=Decision.AMBIGUOUS,
+            verdict=(
+                f"ambiguous between {best.effect} and {runner.effect}: evidence gains {best.evidence_gain:.1f} "
+                f"and {runner.evidence_gain:.1f} nats differ by less than {rule.margin_nats:g}"
+            ),
+        )
     target = (1 - rule.min_improvement) * err_held
     joint = ""
     if not (best.error_after is not None and best.error_after < target):
@@ -216,16 +267,22 @@ def _choose(run, scores, threshold: float, err_held: float, rule: DecisionRule) 
                 break
         if not joint:
             after = "-" if best.error_after is None else f"{100 * best.error_after:.3g}"
-            return dict(decision=Decision.NO_HELDOUT_GAIN, verdict=(
-                f"{best.effect} gains {best.evidence_gain:.1f} nats but does not lower the held-out error "
-                f"enough ({100 * err_held:.3g} % -> {after} %); not added"))
+            return dict(
+                decision=Decision.NO_HELDOUT_GAIN,
+                verdict=(
+                    f"{best.effect} gains {best.evidence_gain:.1f} nats but does not lower the held-out error "
+                    f"enough ({100 * err_held:.3g} % -> {after} %); not added"
+                ),
+            )
     run.structure = run.with_terms(best)
     after_model = run.design.model(run.structure, run.data)
     after_err = best.error_after if best.error_after is not None else run.err(after_model, run.heldout)
     coef_name = next((e.coefficient for e in run.effects if e.name == best.effect), "k")
     phys = "" if best.physical is None else f", {coef_name} = {best.physical:.4g}"
     lead = best.evidence_gain - (runner.evidence_gain if runner else 0.0)
-    verdict = (f"added {best.effect} ({best.description}){phys}: +{best.evidence_gain:.1f} nats, {lead:.1f} ahead "
-               f"of {runner.effect if runner else 'nothing'}; held-out error {100 * err_held:.3g} % -> "
-               f"{100 * after_err:.3g} %{joint}")
+    verdict = (
+        f"added {best.effect} ({best.description}){phys}: +{best.evidence_gain:.1f} nats, {lead:.1f} ahead "
+        f"of {runner.effect if runner else 'nothing'}; held-out error {100 * err_held:.3g} % -> "
+        f"{100 * after_err:.3g} %{joint}"
+    )
     return dict(decision=Decision.ADDED, verdict=verdict, added=best, model_after=after_model, error_after=after_err)

@@ -70,12 +70,17 @@ class Design:
         for lhs, cols in structure.items():
             fit = self.fit(traj, names.index(lhs), cols)
             equations.append(self.equation(lhs, cols, fit, self.stats(traj).n_samples))
-        return IdentifiedModel(tuple(self.states), tuple(self.inputs), tuple(equations),
-                               metadata={"derivative": type(self.derivative).__name__})
+        return IdentifiedModel(
+            tuple(self.states),
+            tuple(self.inputs),
+            tuple(equations),
+            metadata={"derivative": type(self.derivative).__name__},
+        )
 
 
-def heldout_error(model: IdentifiedModel, traj: Trajectory, measure: str, design: Design, velocity: str,
-                  measured=None) -> float:
+def heldout_error(
+    model: IdentifiedModel, traj: Trajectory, measure: str, design: Design, velocity: str, measured=None
+) -> float:
     """Held-out error of ``model`` on ``traj``: mean simulation NRMSE of the ``measured`` states (default all),
     or the NRMSE of the velocity equation on the record's rows (``measure="equation"``)."""
     if measure == "simulation":

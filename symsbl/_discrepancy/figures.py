@@ -27,8 +27,11 @@ def _equation_residual(model: IdentifiedModel, data: Trajectory, velocity: str) 
     """Measured ``dv/dt`` (central differences) minus the model's right-hand side for ``v``, per sample."""
     f = model.to_system().rhs_function().map(data.n_samples)
     X = np.column_stack([data.column(n) for n in model.state_names])
-    U = (np.column_stack([data.column(n) for n in model.input_names]) if model.input_names
-         else np.zeros((data.n_samples, 0)))
+    U = (
+        np.column_stack([data.column(n) for n in model.input_names])
+        if model.input_names
+        else np.zeros((data.n_samples, 0))
+    )
     rhs = f(X.T, U.T).full()[model.state_names.index(velocity)]
     return np.gradient(data.column(velocity), data.t) - rhs
 
@@ -38,8 +41,14 @@ def _before_after(ax, report, heldout: Trajectory | None, velocity: str, displac
     when the velocity was not measured)."""
     if heldout is None:
         ax.set_axis_off()
-        ax.text(0.5, 0.5, "pass heldout= (the held-out Trajectory)\nto draw the response before and after",
-                ha="center", va="center", transform=ax.transAxes)
+        ax.text(
+            0.5,
+            0.5,
+            "pass heldout= (the held-out Trajectory)\nto draw the response before and after",
+            ha="center",
+            va="center",
+            transform=ax.transAxes,
+        )
         ax.set_title("(a) held-out record")
         return
     window = forcing_window(heldout, 2.0)
@@ -47,11 +56,15 @@ def _before_after(ax, report, heldout: Trajectory | None, velocity: str, displac
     t = heldout.t[keep]
     if report.error_measure == "equation":
         last = report.steps[-1]
-        errors = (report.steps[0].error_heldout,
-                  last.error_after if last.error_after is not None else last.error_heldout)
+        errors = (
+            report.steps[0].error_heldout,
+            last.error_after if last.error_after is not None else last.error_heldout,
+        )
         reach = 0.0
-        for model, err, colour, ls, label in ((report.initial, errors[0], BEFORE, "-", "before"),
-                                              (report.final, errors[1], AFTER, "--", "after")):
+        for model, err, colour, ls, label in (
+            (report.initial, errors[0], BEFORE, "-", "before"),
+            (report.final, errors[1], AFTER, "--", "after"),
+        ):
             r = _equation_residual(model, heldout, velocity)[keep]
             reach = max(reach, float(np.percentile(np.abs(r), 99.5)))
             ax.plot(t, r, color=colour, lw=0.8, ls=ls, label=f"{label} (equation NRMSE {100 * err:.3g} %)")
@@ -155,8 +168,9 @@ def discrepancy_figure(report, heldout: Trajectory | None = None):
     """
     if not isinstance(report, DiscrepancyReport) or not report.steps:
         got = type(report).__name__ if not isinstance(report, DiscrepancyReport) else "a report with no iteration"
-        raise DataError(expected("report", "a DiscrepancyReport from symsbl.discrepancy with at least one iteration",
-                                 got, raw=True))
+        raise DataError(
+            expected("report", "a DiscrepancyReport from symsbl.discrepancy with at least one iteration", got, raw=True)
+        )
     if heldout is not None and not isinstance(heldout, Trajectory):
         raise DataError(expected("heldout", "a Trajectory (the held-out record)", type(heldout).__name__, raw=True))
     displacement, velocity = _kinematic_pair(report.initial)

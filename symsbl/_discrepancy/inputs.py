@@ -89,12 +89,14 @@ def read_effects(path) -> tuple:
     import re
     from pathlib import Path
 
-
     try:
         lines = Path(path).read_text().splitlines()
     except (OSError, UnicodeDecodeError) as err:
-        raise LibraryError(expected("--effects", "a readable text file of 'name: expression' lines", str(path),
-                                    type(err).__name__, raw=True)) from None
+        raise LibraryError(
+            expected(
+                "--effects", "a readable text file of 'name: expression' lines", str(path), type(err).__name__, raw=True
+            )
+        ) from None
     x, v = ca.SX.sym("x"), ca.SX.sym("v")
     out = []
     for number, raw in enumerate(lines, 1):
@@ -106,20 +108,32 @@ def read_effects(path) -> tuple:
         name = name.strip()
         body, _, flag = rest.partition(";")
         if not sep or not re.fullmatch(r"[A-Za-z_]\w*", name) or not body.strip():
-            raise LibraryError(expected(where, "'name: expression' with a Python-style name, e.g. "
-                                        "'stribeck: sign(v)*exp(-(v/0.01)**2); dissipative'", raw))
+            raise LibraryError(
+                expected(
+                    where,
+                    "'name: expression' with a Python-style name, e.g. "
+                    "'stribeck: sign(v)*exp(-(v/0.01)**2); dissipative'",
+                    raw,
+                )
+            )
         if flag.strip() not in ("", "dissipative"):
             raise LibraryError(expected(where, "nothing or '; dissipative' after the expression", flag.strip()))
         try:
             expr = parse_expression(body.strip(), {"x": x, "v": v}, where=where)
         except ExpressionError as err:
             raise LibraryError(str(err)) from None
-        out.append(Effect(name, f"user effect {body.strip()}", "user",
-                          lambda xs, vs, e=expr: ca.substitute(e, ca.vertcat(x, v), ca.vertcat(xs, vs)),
-                          sign=-1 if flag.strip() else 0, coefficient="k"))
+        out.append(
+            Effect(
+                name,
+                f"user effect {body.strip()}",
+                "user",
+                lambda xs, vs, e=expr: ca.substitute(e, ca.vertcat(x, v), ca.vertcat(xs, vs)),
+                sign=-1 if flag.strip() else 0,
+                coefficient="k",
+            )
+        )
     if not out:
-        raise LibraryError(expected("--effects", "at least one 'name: expression' line", f"none in {path}",
-                                    raw=True))
+        raise LibraryError(expected("--effects", "at least one 'name: expression' line", f"none in {path}", raw=True))
     return tuple(out)
 
 
@@ -134,8 +148,9 @@ def describe_effects(effects) -> str:
             terms += f" (g from {e.grid[0]:g} to {e.grid[-1]:g} of the {e.grid_of} amplitude)"
         rule = "must dissipate" if e.sign == -1 else "either sign"
         rows.append(f"{e.name:22s} {e.family:10s} {terms:52s} {rule:15s} {e.description}")
-    header = (f"{'effect':22s} {'family':10s} {'term (x: displacement, v: velocity)':52s} {'coefficient':15s} "
-              "description")
+    header = (
+        f"{'effect':22s} {'family':10s} {'term (x: displacement, v: velocity)':52s} {'coefficient':15s} description"
+    )
     return "\n".join([header] + rows)
 
 
@@ -191,5 +206,11 @@ def check_record(traj, what, names):
     if not isinstance(traj, Trajectory):
         raise DataError(expected(what, "a Trajectory", type(traj).__name__, raw=True))
     if names is not None and (tuple(traj.state_names), tuple(traj.input_names)) != names:
-        raise DataError(expected(what, f"the training record's states {list(names[0])} and inputs {list(names[1])}",
-                                 f"{list(traj.state_names)} and {list(traj.input_names)}", raw=True))
+        raise DataError(
+            expected(
+                what,
+                f"the training record's states {list(names[0])} and inputs {list(names[1])}",
+                f"{list(traj.state_names)} and {list(traj.input_names)}",
+                raw=True,
+            )
+        )

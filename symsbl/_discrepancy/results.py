@@ -11,7 +11,12 @@ from .._base.format import format_uncertain
 from .._model import IdentifiedModel
 
 __all__ = [
-    "Decision", "Disagreement", "EffectScore", "DiscrepancyStep", "DiscrepancyReport", "OUTSIDE_CATALOGUE",
+    "Decision",
+    "Disagreement",
+    "EffectScore",
+    "DiscrepancyStep",
+    "DiscrepancyReport",
+    "OUTSIDE_CATALOGUE",
 ]
 
 #: The ``family`` of an :class:`EffectScore` for a library term that no catalogue effect names.
@@ -223,35 +228,65 @@ class DiscrepancyReport:
     def to_json(self) -> dict:
         """``{"added": [...], "verdict": ..., "final": <identify JSON>, "steps": [...]}``."""
         added = [
-            {"effect": a.effect, "term": ", ".join(a.terms), "coef": a.coef,
-             "std": a.std, "evidence_gain": a.evidence_gain, "physical": a.physical,
-             "description": a.description, "error_before": s.error_heldout, "error_after": s.error_after,
-             "label": a.label, "where": a.where, "decision": s.decision.value,
-             "bayes_factor": _finite(s.bayes_factor), "runner_up": s.runner_up, "confirmation": s.confirmation,
-             "separating_experiment": s.separating_experiment, "replaces": s.replaces}
+            {
+                "effect": a.effect,
+                "term": ", ".join(a.terms),
+                "coef": a.coef,
+                "std": a.std,
+                "evidence_gain": a.evidence_gain,
+                "physical": a.physical,
+                "description": a.description,
+                "error_before": s.error_heldout,
+                "error_after": s.error_after,
+                "label": a.label,
+                "where": a.where,
+                "decision": s.decision.value,
+                "bayes_factor": _finite(s.bayes_factor),
+                "runner_up": s.runner_up,
+                "confirmation": s.confirmation,
+                "separating_experiment": s.separating_experiment,
+                "replaces": s.replaces,
+            }
             for s, a in self._kept()
         ]
         steps = [
-            {"iteration": s.iteration, "decision": s.decision.value, "verdict": s.verdict, "threshold": s.threshold,
-             "null_gains": list(s.null_gains), "error_train": s.error_train, "error_heldout": s.error_heldout,
-             "where": s.disagreement.summary, "evidence": s.evidence, "residual_ratio": s.residual_ratio,
-             "bayes_factor": _finite(s.bayes_factor), "runner_up": s.runner_up, "confirmation": s.confirmation,
-             "separating_experiment": s.separating_experiment, "replaces": s.replaces,
-             "scores": [{"effect": c.label, "evidence_gain": _finite(c.evidence_gain), "coef": _finite(c.coef),
-                         "std": _finite(c.std), "admissible": c.admissible, "error_after": c.error_after,
-                         "name": c.effect, "where": c.where, "family": c.family, "terms": list(c.terms)}
-                        for c in s.scores]}
+            {
+                "iteration": s.iteration,
+                "decision": s.decision.value,
+                "verdict": s.verdict,
+                "threshold": s.threshold,
+                "null_gains": list(s.null_gains),
+                "error_train": s.error_train,
+                "error_heldout": s.error_heldout,
+                "where": s.disagreement.summary,
+                "evidence": s.evidence,
+                "residual_ratio": s.residual_ratio,
+                "bayes_factor": _finite(s.bayes_factor),
+                "runner_up": s.runner_up,
+                "confirmation": s.confirmation,
+                "separating_experiment": s.separating_experiment,
+                "replaces": s.replaces,
+                "scores": [_score_json(c) for c in s.scores],
+            }
             for s in self.steps
         ]
-        return {"added": added, "verdict": self.verdict, "final": self.final.to_json(),
-                "error_measure": self.error_measure, "evidence": self.evidence, "notes": list(self.notes),
-                "steps": steps}
+        return {
+            "added": added,
+            "verdict": self.verdict,
+            "final": self.final.to_json(),
+            "error_measure": self.error_measure,
+            "evidence": self.evidence,
+            "notes": list(self.notes),
+            "steps": steps,
+        }
 
     def __str__(self) -> str:
         lines = [f"note: {n}" for n in self.notes] + ["model before:", _indent(str(self.initial))]
         for s in self.steps:
-            lines.append(f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
-                         f"training, {100 * s.error_heldout:.3g} % held out")
+            lines.append(
+                f"\niteration {s.iteration}: {self.error_measure} error {100 * s.error_train:.3g} % on "
+                f"training, {100 * s.error_heldout:.3g} % held out"
+            )
             lines.append("where it disagrees: " + s.disagreement.summary)
             lines += _candidate_lines(s) if s.scores else []  # a removal scores no candidates
             lines.append("decision: " + s.verdict)
@@ -259,23 +294,44 @@ class DiscrepancyReport:
         if self.steps:
             first, last = self.steps[0], self.steps[-1]
             after = last.error_after if last.error_after is not None else last.error_heldout
-            lines.append(f"held-out {self.error_measure} error: {100 * first.error_heldout:.3g} % before, "
-                         f"{100 * after:.3g} % after")
+            lines.append(
+                f"held-out {self.error_measure} error: {100 * first.error_heldout:.3g} % before, "
+                f"{100 * after:.3g} % after"
+            )
         lines.append("verdict: " + self.verdict)
         return "\n".join(lines)
 
 
 def _candidate_lines(s: DiscrepancyStep) -> list[str]:
     """The table of one step's candidates."""
-    lines = [f"candidates ({s.evidence} evidence; threshold {s.threshold:.1f} nats; null gains "
-             + ", ".join(f"{g:.1f}" for g in s.null_gains) + "):",
-             f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}"]
+    lines = [
+        f"candidates ({s.evidence} evidence; threshold {s.threshold:.1f} nats; null gains "
+        + ", ".join(f"{g:.1f}" for g in s.null_gains)
+        + "):",
+        f"  {'effect':34s} {'gain (nats)':>12s} {'coefficient':>22s} {'held-out after':>15s}",
+    ]
     for c in s.scores:
         err = "-" if c.error_after is None else f"{100 * c.error_after:.3g} %"
         coef = format_uncertain(c.coef, c.std) if np.isfinite(c.coef) else "-"
         note = "" if c.admissible else f"  ({c.reason})"
         lines.append(f"  {c.label:34s} {c.evidence_gain:12.1f} {coef:>22s} {err:>15s}{note}")
     return lines
+
+
+def _score_json(c) -> dict:
+    """One candidate's score as the JSON report lists it."""
+    return {
+        "effect": c.label,
+        "evidence_gain": _finite(c.evidence_gain),
+        "coef": _finite(c.coef),
+        "std": _finite(c.std),
+        "admissible": c.admissible,
+        "error_after": c.error_after,
+        "name": c.effect,
+        "where": c.where,
+        "family": c.family,
+        "terms": list(c.terms),
+    }
 
 
 def _finite(x):

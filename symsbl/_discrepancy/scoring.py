@@ -124,10 +124,17 @@ class Scorer:
         evenly spaced windows of at most :data:`SCREEN_SAMPLES` samples, scaled to all the samples."""
         sol, main = self.solution, self.engine
         plan, _ = window_plan([r.n_samples for r in self.records], SCREEN_SAMPLES)
-        windows = [self.records[k] if (a, b) == (0, self.records[k].n_samples) else self.records[k].slice(a, b)
-                   for k, a, b in plan]
-        engine = Engine(self.model, windows, self.measured, dataclasses.replace(self.settings, jit=False),
-                        with_candidates(self.model, candidates))
+        windows = [
+            self.records[k] if (a, b) == (0, self.records[k].n_samples) else self.records[k].slice(a, b)
+            for k, a, b in plan
+        ]
+        engine = Engine(
+            self.model,
+            windows,
+            self.measured,
+            dataclasses.replace(self.settings, jit=False),
+            with_candidates(self.model, candidates),
+        )
         passes = engine.passes
         theta = np.zeros(len(engine.positions))
         theta[engine.base] = sol.theta[main.base]
@@ -163,18 +170,25 @@ class Scorer:
         for idx in positions_of(engine, self.model, candidates):
             active = np.concatenate([engine.base, idx]).astype(int)
             try:
-                sol = engine.fit(active, base.theta, np.where(np.isin(np.arange(alpha.size), idx), alpha, base.alpha),
-                                 warm=base)
+                sol = engine.fit(
+                    active, base.theta, np.where(np.isin(np.arange(alpha.size), idx), alpha, base.alpha), warm=base
+                )
             except SimulationError:
                 out.append(None)
                 continue
             post = sol.posterior
             where = [list(sol.active).index(k) for k in idx]
-            out.append({"gain": float(post.log_evidence - base.posterior.log_evidence),
-                        "fraction": residual_fraction(engine, sol),
-                        "model": to_model(engine, sol, {"refine": {"log_evidence": float(post.log_evidence)}}),
-                        "coefs": post.mean[where], "stds": post.std[where], "w": sol.channel_w,
-                        "horizon": record_horizon(engine, sol)})
+            out.append(
+                {
+                    "gain": float(post.log_evidence - base.posterior.log_evidence),
+                    "fraction": residual_fraction(engine, sol),
+                    "model": to_model(engine, sol, {"refine": {"log_evidence": float(post.log_evidence)}}),
+                    "coefs": post.mean[where],
+                    "stds": post.std[where],
+                    "w": sol.channel_w,
+                    "horizon": record_horizon(engine, sol),
+                }
+            )
         return out
 
     def initial_states(self) -> list[np.ndarray]:
@@ -200,8 +214,10 @@ class Scorer:
                     clean = simulate(system, r.t, inputs=U, x0=x0, method="rk4", on_divergence="raise")
                 except SimulationError:
                     return out
-                cols = [clean.column(n) + rng.standard_normal(r.n_samples) * std.get(n, 0.0)  # unmeasured: unused
-                        for n in r.state_names]
+                cols = [
+                    clean.column(n) + rng.standard_normal(r.n_samples) * std.get(n, 0.0)  # unmeasured: unused
+                    for n in r.state_names
+                ]
                 fakes.append(Trajectory(r.t, np.column_stack(cols), r.inputs, r.state_names, r.input_names))
             try:
                 fake = Scorer(self.model, fakes, self.measured, self.settings)

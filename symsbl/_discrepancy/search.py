@@ -91,8 +91,22 @@ def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
     description = e.description if e is not None else f"the library term {c.label}, outside the catalogue"
     first = c.additions[0][0]
     if fit is None:
-        return EffectScore(c.name, c.label, description, family, c.terms, lin - c.penalty, math.nan, math.nan, None,
-                           True, "screened only (quadratic model of the evidence)", None, c.shape, where=c.pair.where)
+        return EffectScore(
+            c.name,
+            c.label,
+            description,
+            family,
+            c.terms,
+            lin - c.penalty,
+            math.nan,
+            math.nan,
+            None,
+            True,
+            "screened only (quadratic model of the evidence)",
+            None,
+            c.shape,
+            where=c.pair.where,
+        )
     coef, std = float(fit["coefs"][0]), float(fit["stds"][0])
     ref = _inverse_mass(fit["model"], first, run)  # from the same fit as coef
     ok, reason = True, ""
@@ -100,8 +114,22 @@ def _score(run, c, fit, model, lin: float, check: bool = True) -> EffectScore:
         ok, reason = False, "wrong sign: it would feed energy in"
     physical = None if ref is None else -coef / ref
     gain = _net(fit) - c.penalty
-    return EffectScore(c.name, c.label, description, family, c.terms, gain, coef, std, physical, ok, reason,
-                       run.err(fit["model"], run.heldout) if check else None, c.shape, where=c.pair.where)
+    return EffectScore(
+        c.name,
+        c.label,
+        description,
+        family,
+        c.terms,
+        gain,
+        coef,
+        std,
+        physical,
+        ok,
+        reason,
+        run.err(fit["model"], run.heldout) if check else None,
+        c.shape,
+        where=c.pair.where,
+    )
 
 
 def _net(fit: dict) -> float:
@@ -151,9 +179,16 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
     err_train, err_held = run.err(fitted, run.data), run.err(fitted, run.heldout)
     swap = _prune(run, model, scorer, fitted, history) or _revisit(run, it, model, scorer, rule, history)
     if swap is not None:
-        return DiscrepancyStep(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held,
-                               disagreement=run.where(fitted), evidence="output-error",
-                               residual_ratio=run.residual_ratio(scorer), **swap)
+        return DiscrepancyStep(
+            iteration=it,
+            model=fitted,
+            error_train=err_train,
+            error_heldout=err_held,
+            disagreement=run.where(fitted),
+            evidence="output-error",
+            residual_ratio=run.residual_ratio(scorer),
+            **swap,
+        )
     where = run.where(fitted)
     # an effect once at a place is not added again (at another shape): its shape was refined when it was added
     present = run.added_keys | {c.key for c in run.oe_candidates if _present(model, c)}
@@ -178,9 +213,18 @@ def oe_step(run, it: int, model, rule, seed: int, history=()) -> DiscrepancyStep
             scores.append(_score(run, avail[i], None, fitted, lin[i]))
     scores.sort(key=lambda s: -s.evidence_gain if np.isfinite(s.evidence_gain) else math.inf)
     threshold = max([rule.floor_nats] + [rule.bootstrap_factor * g for g in null])
-    step = dict(iteration=it, model=fitted, error_train=err_train, error_heldout=err_held, disagreement=where,
-                scores=tuple(scores), threshold=threshold, null_gains=tuple(null), evidence="output-error",
-                residual_ratio=run.residual_ratio(scorer))
+    step = dict(
+        iteration=it,
+        model=fitted,
+        error_train=err_train,
+        error_heldout=err_held,
+        disagreement=where,
+        scores=tuple(scores),
+        threshold=threshold,
+        null_gains=tuple(null),
+        evidence="output-error",
+        residual_ratio=run.residual_ratio(scorer),
+    )
     by_label = {(avail[i].label): (avail[i], refitted[i]) for i in refitted}
     ratio = (step["residual_ratio"], run.input_share(scorer))
     reaches = [r for r in [scorer.horizon] + [f.get("horizon") for f in refitted.values()] if r is not None]
@@ -200,12 +244,19 @@ def _cannot_tell(run, scorer, chosen: dict, level: float, err_held: float, reach
     why = chosen["verdict"].removesuffix("; not added")
     if reaches:
         seconds = min(reaches) * float(np.mean([r.dt for r in scorer.records]))
-        why += (f"; the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold "
-                f"within {seconds:.3g} s), so held-out simulations and predictions fail whatever the model")
-    return dict(chosen, decision=Decision.CANNOT_TELL, verdict=(
-        f"the model is badly wrong (its residual stands at {level:.3g}x the measured noise level; held-out "
-        f"{run.error} error {100 * err_held:.3g} %) and this record cannot tell why: {why}; record a response that "
-        "tells the candidates apart (another excitation level or band) before adding any"))
+        why += (
+            f"; the record is hypersensitive (chaotic-like: a fitted model amplifies a state error 10^4-fold "
+            f"within {seconds:.3g} s), so held-out simulations and predictions fail whatever the model"
+        )
+    return dict(
+        chosen,
+        decision=Decision.CANNOT_TELL,
+        verdict=(
+            f"the model is badly wrong (its residual stands at {level:.3g}x the measured noise level; held-out "
+            f"{run.error} error {100 * err_held:.3g} %) and this record cannot tell why: {why}; record a response that "
+            "tells the candidates apart (another excitation level or band) before adding any"
+        ),
+    )
 
 
 def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held, reaches: list) -> dict:
@@ -215,58 +266,110 @@ def _choose(run, model, scores, by_label, threshold, rule, ratio, err_held, reac
     named = [s for s in ranked if s.family != OUTSIDE_CATALOGUE]
     best = ranked[0] if ranked else None
     if best is None or best.evidence_gain <= threshold:
-        gain = "none" if best is None else f"{best.evidence_gain:.1f}"
-        level, share = ratio
-        if level > UNEXPLAINED_RATIO and share > 1:
-            return dict(decision=Decision.UNEXPLAINED, verdict=(
-                f"unexplained: no candidate gains more than the threshold ({gain} <= {threshold:.1f} nats), but the "
-                f"residual stands at {level:.2f}x the measured noise level and follows the input ({share:.2g}x the "
-                f"share chance explains)"))
-        coloured = "" if level <= UNEXPLAINED_RATIO else (
-            f"; the residual is {level:.3g}x the white-noise level but does not follow the input: correlated "
-            f"measurement noise")
-        return dict(decision=Decision.NOTHING_MISSING, verdict=(
-            f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats){coloured}"))
+        return _below_threshold(best, threshold, ratio)
     candidate, fit = by_label[best.label]
     outside = candidate.effect is None  # a library term: named only when it beats every named effect by the margin
-    runner = named[0] if outside and named else next(
-        (s for s in ranked if s is not best and s.effect != best.effect), None)
+    runner = (
+        named[0] if outside and named else next((s for s in ranked if s is not best and s.effect != best.effect), None)
+    )
     if best.error_after is None:
         best = dataclasses.replace(best, error_after=run.err(fit["model"], run.heldout))
     cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings, reaches)
     log_bf = best.evidence_gain - runner.evidence_gain if runner is not None else math.inf
-    info = dict(added=best, bayes_factor=_bf(log_bf), runner_up=None if runner is None else runner.label,
-                confirmation=cv)
+    info = dict(
+        added=best, bayes_factor=_bf(log_bf), runner_up=None if runner is None else runner.label, confirmation=cv
+    )
     if not cv > 0:
-        return dict(decision=Decision.NO_HELDOUT_GAIN, bayes_factor=info["bayes_factor"],
-                    runner_up=info["runner_up"], confirmation=cv, verdict=(
-                        f"{best.label} gains {best.evidence_gain:.1f} nats but does not predict held-out records "
-                        f"better (cross-validated predictive log likelihood {cv:+.1f} nats); not added"))
+        return _not_confirmed(best, info)
     after = fit["model"]
     coef_name = best.effect if outside else candidate.effect.coefficient
     phys = "" if best.physical is None else f", {coef_name} = {best.physical:.4g}"
     odds = "" if runner is None else f", Bayes factor {_bf_text(log_bf)} over {runner.label}"
-    tail = (f"held-out error {100 * err_held:.3g} % -> {100 * best.error_after:.3g} %; "
-            f"cross-validated predictive log likelihood {cv:+.1f} nats")
+    tail = (
+        f"held-out error {100 * err_held:.3g} % -> {100 * best.error_after:.3g} %; "
+        f"cross-validated predictive log likelihood {cv:+.1f} nats"
+    )
     if outside and (runner is None or log_bf >= rule.margin_nats):
         closest = ", ".join(f"{s.label} ({s.evidence_gain - best.evidence_gain:+.1f} nats)" for s in named[:2])
-        verdict = (f"added a term not in the catalogue: {best.label} in {candidate.additions[0][0]}' with coefficient "
-                   f"{best.coef:.4g} +- {best.std:.2g}: +{best.evidence_gain:.1f} nats; the closest named effects "
-                   f"explain less: {closest or 'none'}; {tail}")
+        verdict = (
+            f"added a term not in the catalogue: {best.label} in {candidate.additions[0][0]}' with coefficient "
+            f"{best.coef:.4g} +- {best.std:.2g}: +{best.evidence_gain:.1f} nats; the closest named effects "
+            f"explain less: {closest or 'none'}; {tail}"
+        )
         return dict(decision=Decision.ADDED, verdict=verdict, model_after=after, error_after=best.error_after, **info)
     if runner is not None and log_bf < rule.margin_nats:
-        experiment = separating_experiment(after, by_label[runner.label][1]["model"], run.data, run.measured,
-                                           run.noise_of(fit))
-        where = "" if experiment is None else (
-            f"; {experiment['input']} would separate them (predictions {experiment['difference_noise_std']:.3g} noise "
-            f"std apart, against {experiment['difference_on_training_input']:.3g} on the training input)")
-        verdict = (f"ambiguous between {best.label}{f' ({OUTSIDE_CATALOGUE})' if outside else ''} and {runner.label}: "
-                   f"Bayes factor {_bf_text(log_bf)} (below {_bf_text(rule.margin_nats)}); the better, {best.label}, "
-                   f"is kept{phys}{where}; {tail}")
-        return dict(decision=Decision.AMBIGUOUS, verdict=verdict, model_after=after, error_after=best.error_after,
-                    separating_experiment=experiment, **info)
-    verdict = (f"added {best.label} ({best.description}){phys}: +{best.evidence_gain:.1f} nats{odds}; {tail}")
+        experiment = separating_experiment(
+            after, by_label[runner.label][1]["model"], run.data, run.measured, run.noise_of(fit)
+        )
+        verdict = (
+            f"ambiguous between {best.label}{f' ({OUTSIDE_CATALOGUE})' if outside else ''} and {runner.label}: "
+            f"Bayes factor {_bf_text(log_bf)} (below {_bf_text(rule.margin_nats)}); the better, {best.label}, "
+            f"is kept{phys}{_separation(experiment)}; {tail}"
+        )
+        return dict(
+            decision=Decision.AMBIGUOUS,
+            verdict=verdict,
+            model_after=after,
+            error_after=best.error_after,
+            separating_experiment=experiment,
+            **info,
+        )
+    verdict = f"added {best.label} ({best.description}){phys}: +{best.evidence_gain:.1f} nats{odds}; {tail}"
     return dict(decision=Decision.ADDED, verdict=verdict, model_after=after, error_after=best.error_after, **info)
+
+
+def _not_confirmed(best, info: dict) -> dict:
+    """The decision when the leading candidate does not predict held-out records better (``info``: its Bayes
+    factor, runner-up and cross-validated gain)."""
+    cv = info["confirmation"]
+    return dict(
+        decision=Decision.NO_HELDOUT_GAIN,
+        bayes_factor=info["bayes_factor"],
+        runner_up=info["runner_up"],
+        confirmation=cv,
+        verdict=(
+            f"{best.label} gains {best.evidence_gain:.1f} nats but does not predict held-out records "
+            f"better (cross-validated predictive log likelihood {cv:+.1f} nats); not added"
+        ),
+    )
+
+
+def _below_threshold(best, threshold: float, ratio: tuple) -> dict:
+    """The decision when no candidate clears ``threshold``: unexplained when the residual ``ratio`` (its level
+    over the noise, its share that follows the input) says the model misfits, else nothing missing."""
+    gain = "none" if best is None else f"{best.evidence_gain:.1f}"
+    level, share = ratio
+    if level > UNEXPLAINED_RATIO and share > 1:
+        return dict(
+            decision=Decision.UNEXPLAINED,
+            verdict=(
+                f"unexplained: no candidate gains more than the threshold ({gain} <= {threshold:.1f} nats), "
+                f"but the residual stands at {level:.2f}x the measured noise level and follows the input "
+                f"({share:.2g}x the share chance explains)"
+            ),
+        )
+    coloured = (
+        ""
+        if level <= UNEXPLAINED_RATIO
+        else (
+            f"; the residual is {level:.3g}x the white-noise level but does not follow the input: correlated "
+            f"measurement noise"
+        )
+    )
+    return dict(
+        decision=Decision.NOTHING_MISSING,
+        verdict=f"nothing missing: no effect gains more than the threshold ({gain} <= {threshold:.1f} nats){coloured}",
+    )
+
+
+def _separation(experiment: dict | None) -> str:
+    """The verdict's clause on the experiment that would separate two ambiguous effects (empty: none found)."""
+    if experiment is None:
+        return ""
+    return (
+        f"; {experiment['input']} would separate them (predictions {experiment['difference_noise_std']:.3g} noise "
+        f"std apart, against {experiment['difference_on_training_input']:.3g} on the training input)"
+    )
 
 
 def _without(model, names, base) -> object:
@@ -275,8 +378,9 @@ def _without(model, names, base) -> object:
     for eq in model.equations:
         keep = [k for k, t in enumerate(eq.terms) if t.name not in names or t.name in base.get(eq.lhs, ())]
         if len(keep) < len(eq.terms):
-            eq = dataclasses.replace(eq, terms=tuple(eq.terms[k] for k in keep),
-                                     covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)])
+            eq = dataclasses.replace(
+                eq, terms=tuple(eq.terms[k] for k in keep), covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)]
+            )
         eqs.append(eq)
     return dataclasses.replace(model, equations=tuple(eqs))
 
@@ -289,8 +393,14 @@ def _base_terms(history) -> dict:
 def _kept_additions(history) -> list:
     """The steps whose addition is still in the model and was followed by a later one."""
     gone = {s.replaces for s in history if s.replaces is not None}
-    return [s for k, s in enumerate(history) if s.added is not None and s.model_after is not None
-            and s.added.label not in gone and any(h.model_after is not None for h in history[k + 1:])]
+    return [
+        s
+        for k, s in enumerate(history)
+        if s.added is not None
+        and s.model_after is not None
+        and s.added.label not in gone
+        and any(h.model_after is not None for h in history[k + 1 :])
+    ]
 
 
 def _prune(run, model, scorer, fitted, history) -> dict | None:
@@ -312,11 +422,22 @@ def _prune(run, model, scorer, fitted, history) -> dict | None:
             continue
         after = without.fitted()
         error = run.err(after, run.heldout)
-        verdict = (f"removed {s.added.label} (added in iteration {s.iteration}): with the effects added since, "
-                   f"the records are explained as well without it ({gain:+.1f} nats, Bayes factor {_bf_text(gain)} "
-                   f"for removing it); held-out error -> {100 * error:.3g} %")
-        return dict(scores=(), threshold=0.0, null_gains=(), decision=Decision.REMOVED, verdict=verdict,
-                    model_after=after, error_after=error, bayes_factor=_bf(gain), replaces=s.added.label)
+        verdict = (
+            f"removed {s.added.label} (added in iteration {s.iteration}): with the effects added since, "
+            f"the records are explained as well without it ({gain:+.1f} nats, Bayes factor {_bf_text(gain)} "
+            f"for removing it); held-out error -> {100 * error:.3g} %"
+        )
+        return dict(
+            scores=(),
+            threshold=0.0,
+            null_gains=(),
+            decision=Decision.REMOVED,
+            verdict=verdict,
+            model_after=after,
+            error_after=error,
+            bayes_factor=_bf(gain),
+            replaces=s.added.label,
+        )
     return None
 
 
@@ -352,13 +473,26 @@ def _revisit(run, it: int, model, scorer, rule, history) -> dict | None:
         cv = cross_validated_gain(run.scorer, model, fit["model"], run.records, run.measured, run.settings)
         if not cv > 0:
             continue
-        verdict = (f"replaced {s.added.label} (added in iteration {s.iteration}) by {r.label}: with the effects "
-                   f"added since, it explains the records better by {gain:.1f} nats (Bayes factor {_bf_text(gain)}); "
-                   f"held-out error -> {100 * score.error_after:.3g} %; cross-validated predictive log likelihood "
-                   f"{cv:+.1f} nats")
-        return dict(scores=(score,), threshold=rule.margin_nats, null_gains=(), decision=Decision.REPLACED,
-                    verdict=verdict, added=score, model_after=fit["model"], error_after=score.error_after,
-                    bayes_factor=_bf(gain), runner_up=s.added.label, replaces=s.added.label, confirmation=cv)
+        verdict = (
+            f"replaced {s.added.label} (added in iteration {s.iteration}) by {r.label}: with the effects "
+            f"added since, it explains the records better by {gain:.1f} nats (Bayes factor {_bf_text(gain)}); "
+            f"held-out error -> {100 * score.error_after:.3g} %; cross-validated predictive log likelihood "
+            f"{cv:+.1f} nats"
+        )
+        return dict(
+            scores=(score,),
+            threshold=rule.margin_nats,
+            null_gains=(),
+            decision=Decision.REPLACED,
+            verdict=verdict,
+            added=score,
+            model_after=fit["model"],
+            error_after=score.error_after,
+            bayes_factor=_bf(gain),
+            runner_up=s.added.label,
+            replaces=s.added.label,
+            confirmation=cv,
+        )
     return None
 
 
@@ -389,12 +523,15 @@ def as_in_final(run, steps, final) -> list:
     out = []
     for step in steps:
         s = step.added
-        hits = [] if s is None else [(eq, t) for eq in final.equations if not eq.fixed for t in eq.terms
-                                     if t.name == s.terms[0]]
+        hits = (
+            []
+            if s is None
+            else [(eq, t) for eq in final.equations if not eq.fixed for t in eq.terms if t.name == s.terms[0]]
+        )
         if len(hits) != 1:
             out.append(step)
             continue
-        (eq, t), = hits
+        ((eq, t),) = hits
         ref = _inverse_mass(final, eq.lhs, run)
         added = dataclasses.replace(s, coef=t.coef, std=t.std, physical=None if ref is None else -t.coef / ref)
         out.append(dataclasses.replace(step, added=added))

@@ -89,15 +89,22 @@ def _pair(base, state_names, displacement, velocity):
     """The (displacement, velocity) pair: ``x: v`` in the base names them unless given."""
     for name, label in ((displacement, "displacement"), (velocity, "velocity")):
         if name is not None and name not in state_names:
-                raise DataError(expected(label, f"one of the states {list(state_names)}", name))
+            raise DataError(expected(label, f"one of the states {list(state_names)}", name))
     if velocity is None:
         for x, terms in base.items():
             names = [str(t) for t in terms]
             if len(names) == 1 and names[0] in state_names and names[0] != x and (displacement in (None, x)):
                 return x, names[0]
         shown = {k: [str(t) for t in casadi_to_sympy(list(v))] for k, v in base.items()}
-        raise DataError(expected("velocity", "a base equation 'x: v' naming the velocity v, another state",
-                                 f"the base {shown}", "pass velocity= (and displacement=) explicitly", raw=True))
+        raise DataError(
+            expected(
+                "velocity",
+                "a base equation 'x: v' naming the velocity v, another state",
+                f"the base {shown}",
+                "pass velocity= (and displacement=) explicitly",
+                raw=True,
+            )
+        )
     return displacement, velocity
 
 
@@ -196,18 +203,13 @@ def discrepancy(
     check_record(data, "data", None)
     names = (tuple(data.state_names), tuple(data.input_names))
     chosen_by_default = evidence is None
-    error, evidence, search_library, max_iterations, seed = _options(error, evidence, search_library,
-                                                                     max_iterations, seed, rule)
+    error, evidence, search_library, max_iterations, seed = _options(
+        error, evidence, search_library, max_iterations, seed, rule
+    )
     if heldout is None:
         data, heldout = split_record(data)
     check_record(heldout, "heldout", names)
-    states = with_velocities(data.state_names, kinematics)
-    measured = tuple(data.state_names)
-    if states != measured:  # displacement only: the velocities of the declared pairs estimated for the start
-        if evidence != "output-error":
-            raise DataError(expected("evidence", "'output-error' when a velocity is not measured (only the output "
-                                     "error fits the measured positions alone)", evidence, raw=True))
-        (data, heldout), _ = complete_states([data, heldout], states, parse_kinematics(kinematics, states))
+    data, heldout, states, measured = _complete_records(data, heldout, kinematics, evidence)
     if isinstance(base, str):
         base = parse_base(base, data.state_names, data.input_names)
     if not isinstance(base, dict) or set(base) != set(data.state_names):
@@ -225,15 +227,50 @@ def discrepancy(
         start = run.structure_model
         loop = _feedback(run, start) if chosen_by_default and states == measured else ""
         if loop:  # a closed loop biases output error; the inverse model's equation error is consistent
-            notes.append(f"{loop}: the record looks closed-loop, where output error is biased; the equation-error "
-                         "(inverse-model) evidence and the equation error are used instead")
+            notes.append(
+                f"{loop}: the record looks closed-loop, where output error is biased; the equation-error "
+                "(inverse-model) evidence and the equation error are used instead"
+            )
             evidence, error = "equation-error", "equation"
             run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured)
             start = run.design.model(run.structure, data)
+    steps, names_added, note, model = _iterate(run, start, evidence, rule, max_iterations, seed)
+    verdict = f"added {', '.join(names_added)}; then {note}" if names_added else note
+    initial = steps[0].model if evidence == "output-error" else start
+    final = model if evidence == "equation-error" or steps[-1].model_after is not None else steps[-1].model
+    if evidence == "output-error":
+        steps = as_in_final(run, steps, final)
+    return DiscrepancyReport(initial, final, tuple(steps), verdict, error, run.noise, evidence, tuple(notes))
+
+
+def _complete_records(data, heldout, kinematics, evidence):
+    """The records with every declared velocity (estimated when unmeasured), the states and the measured ones."""
+    states = with_velocities(data.state_names, kinematics)
+    measured = tuple(data.state_names)
+    if states != measured:  # displacement only: the velocities of the declared pairs estimated for the start
+        if evidence != "output-error":
+            raise DataError(
+                expected(
+                    "evidence",
+                    "'output-error' when a velocity is not measured (only the output "
+                    "error fits the measured positions alone)",
+                    evidence,
+                    raw=True,
+                )
+            )
+        (data, heldout), _ = complete_states([data, heldout], states, parse_kinematics(kinematics, states))
+    return data, heldout, states, measured
+
+
+def _iterate(run, start, evidence, rule, max_iterations, seed):
+    """The search's steps from ``start``, the names of the effects it added, how it ended and its last model."""
     steps, names_added, note, model = list[DiscrepancyStep](), list[str](), _ending(None), start
     for it in range(1, max_iterations + 1):
-        step = (oe_step(run, it, model, rule, seed=seed + it, history=tuple(steps)) if evidence == "output-error"
-                else decide(run, it, model, rule, seed=seed + it))
+        step = (
+            oe_step(run, it, model, rule, seed=seed + it, history=tuple(steps))
+            if evidence == "output-error"
+            else decide(run, it, model, rule, seed=seed + it)
+        )
         steps.append(step)
         if step.model_after is None:
             note = _ending(step)
@@ -247,21 +284,21 @@ def discrepancy(
             names_added.append(_added_name(step))
             run.added_keys.add((step.added.effect, step.added.where))
         model = step.model_after
-    verdict = f"added {', '.join(names_added)}; then {note}" if names_added else note
-    initial = steps[0].model if evidence == "output-error" else start
-    final = model if evidence == "equation-error" or steps[-1].model_after is not None else steps[-1].model
-    if evidence == "output-error":
-        steps = as_in_final(run, steps, final)
-    return DiscrepancyReport(initial, final, tuple(steps), verdict, error, run.noise, evidence, tuple(notes))
+    return steps, names_added, note, model
 
 
 def _feedback(run, model) -> str:
     """The inputs that depend on past residuals of ``model``'s output-error fit on the records (a closed loop),
     as a phrase; empty when none does."""
     scorer = run.scorer(model, run.records)
-    loops = sorted({f"{name} depends on past residuals of {t.channel}" for t in residual_tests(scorer.engine,
-                                                                                                  scorer.solution)
-                    for name, r in t.feedback_ratio.items() if r > 1})
+    loops = sorted(
+        {
+            f"{name} depends on past residuals of {t.channel}"
+            for t in residual_tests(scorer.engine, scorer.solution)
+            for name, r in t.feedback_ratio.items()
+            if r > 1
+        }
+    )
     return "; ".join(loops)
 
 
@@ -270,8 +307,10 @@ def _added_name(step) -> str:
     label = step.added.label
     outside = step.added.family == OUTSIDE_CATALOGUE
     if step.decision is Decision.AMBIGUOUS:
-        return (f"{label} ({OUTSIDE_CATALOGUE + '; ' if outside else ''}ambiguous with {step.runner_up}, "
-                f"Bayes factor {step.bayes_factor:.3g})")
+        return (
+            f"{label} ({OUTSIDE_CATALOGUE + '; ' if outside else ''}ambiguous with {step.runner_up}, "
+            f"Bayes factor {step.bayes_factor:.3g})"
+        )
     if outside:
         return f"{label} ({OUTSIDE_CATALOGUE})"
     if step.decision is Decision.REPLACED:
@@ -283,12 +322,21 @@ def _options(error, evidence, search_library, max_iterations, seed, rule):
     """:func:`discrepancy`'s scalar options checked against :data:`OPTIONS` (``evidence`` defaults by ``error``)."""
     error = check_params({"error": error}, OPTIONS, error=DataError)["error"]
     evidence = ("output-error" if error == "simulation" else "equation-error") if evidence is None else evidence
-    checked = check_params(dict(evidence=evidence, search_library=search_library, max_iterations=max_iterations,
-                                seed=seed), OPTIONS, error=DataError)
+    checked = check_params(
+        dict(evidence=evidence, search_library=search_library, max_iterations=max_iterations, seed=seed),
+        OPTIONS,
+        error=DataError,
+    )
     if checked["evidence"] == "output-error" and error != "simulation":
-        raise DataError(expected("error", "'simulation' with evidence='output-error' (the output-error search scores "
-                                 "terms the equation-error measure cannot evaluate)", error,
-                                 "use evidence='equation-error' for a plant that cannot run open loop"))
+        raise DataError(
+            expected(
+                "error",
+                "'simulation' with evidence='output-error' (the output-error search scores "
+                "terms the equation-error measure cannot evaluate)",
+                error,
+                "use evidence='equation-error' for a plant that cannot run open loop",
+            )
+        )
     if not isinstance(rule, DecisionRule):
         raise DataError(expected("rule", "a DecisionRule", type(rule).__name__, raw=True))
     return error, checked["evidence"], checked["search_library"], checked["max_iterations"], checked["seed"]
@@ -321,8 +369,11 @@ class Workflow:
         sym = dict(zip(data.state_names, states))
         x_amp = float(np.max(np.abs(data.column(self.x)))) if self.x else 1.0
         x_sym = sym[self.x] if self.x else ca.SX.sym("_unused")
-        variants = [w for e in self.effects
-                    for w in e.variants(x_sym, sym[self.v], x_amp, float(np.max(np.abs(data.column(self.v)))))]
+        variants = [
+            w
+            for e in self.effects
+            for w in e.variants(x_sym, sym[self.v], x_amp, float(np.max(np.abs(data.column(self.v)))))
+        ]
         variants = [w for w in variants if self.x or not any(ca.depends_on(e, x_sym) for e in w.exprs)]
         n_terms = len(variants) + sum(map(len, base.values()))
         diff = get_differentiator(derivative).resolve(data.t, data.states, n_terms=n_terms)
@@ -330,8 +381,14 @@ class Workflow:
         self.structure = {s: [self.design.column(e) for e in terms] for s, terms in base.items()}
         for s, cols in self.structure.items():
             if None in cols or len(set(cols)) < len(cols):
-                raise LibraryError(expected(f"base: state {s!r}", "distinct terms (up to a constant factor)",
-                                            [str(e) for e in casadi_to_sympy(list(base[s]))], "list each term once"))
+                raise LibraryError(
+                    expected(
+                        f"base: state {s!r}",
+                        "distinct terms (up to a constant factor)",
+                        [str(e) for e in casadi_to_sympy(list(base[s]))],
+                        "list each term once",
+                    )
+                )
         candidates = [(w, [self.design.column(e) for e in w.exprs]) for w in variants]
         self.candidates = [(w, cols) for w, cols in candidates if None not in cols]
         lib = self.design.library
@@ -352,13 +409,21 @@ class Workflow:
         base_exprs = {eq.lhs: tuple(t.expr for t in eq.terms) for eq in start.equations}
         found = tuple(pairs) or tuple((p.x, p.v) for p in pairs_of(base_exprs, symbols) if p.x in symbols)
         velocity_of = dict(found)
-        equations = tuple(Equation.kinematic(eq.lhs, symbols[velocity_of[eq.lhs]])
-                          if eq.names == [velocity_of.get(eq.lhs)] else eq for eq in start.equations)
+        equations = tuple(
+            Equation.kinematic(eq.lhs, symbols[velocity_of[eq.lhs]]) if eq.names == [velocity_of.get(eq.lhs)] else eq
+            for eq in start.equations
+        )
         self.structure_model = dataclasses.replace(start, equations=equations, kinematics=found)
         self.pairs = pairs_of(base_exprs, symbols, found)
         if not self.pairs:
-            raise DataError(expected("kinematics", "a position-velocity pair to search (a base equation 'x: v' or "
-                                     "kinematics={'x': 'v'})", "none", raw=True))
+            raise DataError(
+                expected(
+                    "kinematics",
+                    "a position-velocity pair to search (a base equation 'x: v' or kinematics={'x': 'v'})",
+                    "none",
+                    raw=True,
+                )
+            )
         every = {**symbols, **{s.name(): s for s in start.inputs}}
         named = catalogue_candidates(self.effects, self.pairs, every, [data, self.heldout])
         taken = {n for c in named for n in c.terms} | {n for eq in start.equations for n in eq.names}
@@ -383,7 +448,7 @@ class Workflow:
         for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
             levels = noise_levels(r)
             for c, name in enumerate(scorer.measured):
-                res = R[a:a + n, c]
+                res = R[a : a + n, c]
                 res = res[np.isfinite(res)]
                 if res.size and levels.get(name, 0) > 0:
                     out = max(out, float(np.std(res)) / levels[name])
@@ -405,15 +470,16 @@ class Workflow:
         from scipy.signal import coherence
 
         passes, X, R = scorer.engine.passes, scorer.simulated, scorer.residual
-        tests = R.shape[1] * sum(r.inputs.shape[1] for r, n in zip(scorer.records, passes.records.lengths)
-                                 if n >= 64 * segments)
+        tests = R.shape[1] * sum(
+            r.inputs.shape[1] for r, n in zip(scorer.records, passes.records.lengths) if n >= 64 * segments
+        )
         out = 0.0
         for r, a, n in zip(scorer.records, passes.records.starts, passes.records.lengths):
             if n < 64 * segments:
                 continue
-            A = _regressors(X[a:a + n])
+            A = _regressors(X[a : a + n])
             for c in range(R.shape[1]):
-                y = R[a:a + n, c]
+                y = R[a : a + n, c]
                 if not (np.all(np.isfinite(y)) and np.all(np.isfinite(A))) or np.std(y) == 0:
                     continue
                 fit = np.linalg.lstsq(A, y, rcond=None)[0]

@@ -55,25 +55,37 @@ INPUT_RESOLUTION = 0.35
 def _check_setting(trajectories, names, pairs, latent, library: Library):
     """The one setting identified: one record, one position-velocity pair, one latent state, one input."""
     if len(latent) != 1 or len(pairs) != 1 or len(names) != 3:
-        raise DataError(expected(
-            "states", "a position, its velocity and one latent state (e.g. --states y,v,z --kinematics y:v)",
-            f"states {list(names)} with kinematics {[f'{x}:{v}' for x, v in pairs]} and latent {list(latent)}",
-            "a latent state is identified for a single-degree-of-freedom oscillator", raw=True))
+        raise DataError(
+            expected(
+                "states",
+                "a position, its velocity and one latent state (e.g. --states y,v,z --kinematics y:v)",
+                f"states {list(names)} with kinematics {[f'{x}:{v}' for x, v in pairs]} and latent {list(latent)}",
+                "a latent state is identified for a single-degree-of-freedom oscillator",
+                raw=True,
+            )
+        )
     if len(trajectories) != 1:
-        raise DataError(expected("data", "one record when a state is latent", f"{len(trajectories)} records",
-                                 raw=True))
+        raise DataError(expected("data", "one record when a state is latent", f"{len(trajectories)} records", raw=True))
     record = trajectories[0]
     position = pairs[0][0]
     if position not in record.state_names:
-        raise DataError(expected(f"state {position!r}", "a column of the data (the measured position)",
-                                 "no such column", raw=True))
+        raise DataError(
+            expected(f"state {position!r}", "a column of the data (the measured position)", "no such column", raw=True)
+        )
     if len(record.input_names) != 1:
-        raise DataError(expected("inputs", "one input (the force) when a state is latent",
-                                 list(record.input_names), raw=True))
+        raise DataError(
+            expected("inputs", "one input (the force) when a state is latent", list(record.input_names), raw=True)
+        )
     missing = [n for n in (*names, *record.input_names) if n not in library.variable_names]
     if missing:
-        raise DataError(expected("library", f"terms of the states and input {[*names, *record.input_names]}",
-                                 f"no variable {missing}", raw=True))
+        raise DataError(
+            expected(
+                "library",
+                f"terms of the states and input {[*names, *record.input_names]}",
+                f"no variable {missing}",
+                raw=True,
+            )
+        )
 
 
 def identify_latent(trajectories, library: Library, names, pairs, latent, *, refine_options=None) -> IdentifiedModel:
@@ -116,43 +128,70 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     starts = builder.starts(stages)
     substeps = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
     # the branches' evidences compare on one likelihood: doubts are reported, not adapted to
-    options = {"interpolation": "periodic" if periodic else "cubic", "substeps": substeps, "doubts": "report",
-               **(refine_options or {})}
+    options = {
+        "interpolation": "periodic" if periodic else "cubic",
+        "substeps": substeps,
+        "doubts": "report",
+        **(refine_options or {}),
+    }
     data = record.slice(periods.start)
-    fits, caught = {}, {}
+    fits, caught, failed = _refine_branches(starts, data, stages.candidates(library.variables), options, clock)
+    verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
+    for w in caught[best]:  # the losing branches' warnings say only that they lose
+        warnings.warn(w.message, w.category, stacklevel=3)
+    final = builder.with_latent(fits[best], keep=(verdict == "hidden"))
+    summary = _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
+    return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
 
-    candidates = stages.candidates(library.variables)
+
+def _refine_branches(starts, data, candidates, options, clock):
+    """Each branch refined from its start on ``data``: the fits, the warnings of each, the branches that failed."""
+    fits, caught = {}, {}
     failed = {}
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
             try:
-                fits[name] = refine(start, data, library=candidates.get(name), options=RefineOptions(**options),
-                                    selection=BRANCH_RULE)
+                fits[name] = refine(
+                    start, data, library=candidates.get(name), options=RefineOptions(**options), selection=BRANCH_RULE
+                )
             except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
                 failed[name] = str(error)
         clock(f"{name} branch")
     if not fits:
-        raise SimulationError(expected("data", "a record some branch (linear, memoryless, hidden) can simulate",
-                                       f"every refinement diverged: {failed['linear']}", raw=True))
-    verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
-    for w in caught[best]:  # the losing branches' warnings say only that they lose
-        warnings.warn(w.message, w.category, stacklevel=3)
-    final = builder.with_latent(fits[best], keep=(verdict == "hidden"))
-    summary = {
-        "verdict": verdict, "latent": z, "periodic": periodic,
-        "period_samples": periods.length if periodic else None, "periods": periods.n_periods if periodic else 0,
-        "dropped_periods": periods.dropped, "f_max": stages.spectra.f_max,
+        raise SimulationError(
+            expected(
+                "data",
+                "a record some branch (linear, memoryless, hidden) can simulate",
+                f"every refinement diverged: {failed['linear']}",
+                raw=True,
+            )
+        )
+    return fits, caught, failed
+
+
+def _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock) -> dict:
+    """The ``metadata["latent"]`` record: the verdict, the stages' results, each branch's evidence and times."""
+    return {
+        "verdict": verdict,
+        "latent": z,
+        "periodic": periodic,
+        "period_samples": periods.length if periodic else None,
+        "periods": periods.n_periods if periodic else 0,
+        "dropped_periods": periods.dropped,
+        "f_max": stages.spectra.f_max,
         "noise_std_of_average": math.sqrt(stages.spectra.noise_var),
-        "linear_skeleton": stages.linear.to_json(), "split_skeleton": stages.skeleton.to_json(),
+        "linear_skeleton": stages.linear.to_json(),
+        "split_skeleton": stages.skeleton.to_json(),
         "screened_law": [stages.law_terms[i].name for i in stages.law.active_],
         "screened_force": [stages.force_terms[i - 3].name for i in stages.memory.active_ if i >= 3],
-        "branches": {k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
-                     for k, f in fits.items()},
+        "branches": {
+            k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
+            for k, f in fits.items()
+        },
         "failed": failed,
         "seconds": clock.times,
     }
-    return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
 
 
 #: The branches compare by their evidences: each keeps the structure its own evidence selects.
@@ -180,10 +219,11 @@ def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, 
     skeleton = split(lambda m, c, k: weak.unexplained(columns_of, m, c, k, linear_column), linear)
     zhat = spectra.force(skeleton.m, skeleton.c, skeleton.k)
     law = screen(weak.stats(weak.filter(columns_of(zhat)), weak.derivative(zhat)))
-    forces = (evaluate(force_terms, library.variables)({**samples, z: zhat}) if force_terms
-              else np.zeros((spectra.N, 0)))
-    memory = screen(weak.stats(weak.filter(np.column_stack([spectra.a, spectra.v, spectra.y, forces])),
-                               weak.filter(spectra.u)), free=(0, 1, 2))
+    forces = evaluate(force_terms, library.variables)({**samples, z: zhat}) if force_terms else np.zeros((spectra.N, 0))
+    memory = screen(
+        weak.stats(weak.filter(np.column_stack([spectra.a, spectra.v, spectra.y, forces])), weak.filter(spectra.u)),
+        free=(0, 1, 2),
+    )
     clock("split and screen")
     return Screened(spectra, linear, skeleton, law_terms, law, force_terms, memory)
 

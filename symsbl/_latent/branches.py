@@ -90,16 +90,22 @@ class Branches:
         memory = s.memory
         return {
             "linear": self.model(s.linear, [], []),
-            "memoryless": self.model(_memoryless_skeleton(memory, s.linear),
-                                     [(s.force_terms[i - 3], memory, i) for i in memory.active_ if i >= 3], []),
+            "memoryless": self.model(
+                _memoryless_skeleton(memory, s.linear),
+                [(s.force_terms[i - 3], memory, i) for i in memory.active_ if i >= 3],
+                [],
+            ),
             "hidden": self.model(s.skeleton, [], [(s.law_terms[i], s.law, i) for i in s.law.active_]),
         }
 
     def model(self, skeleton: Skeleton, forces, laws) -> IdentifiedModel:
         """``v' = (u - c v - k y - sum eta phi - z) / m`` and ``z' = sum xi theta`` from screened columns."""
         m, sv = skeleton.m, self.sym
-        terms = [_estimate(self.u, 1 / m), _estimate(sv[self.y], -skeleton.k / m),
-                 _estimate(sv[self.v], -skeleton.c / m)]
+        terms = [
+            _estimate(self.u, 1 / m),
+            _estimate(sv[self.y], -skeleton.k / m),
+            _estimate(sv[self.v], -skeleton.c / m),
+        ]
         terms += [_estimate(t.expr, -fit.coef_[i] / m, fit, i) for t, fit, i in forces]
         hidden = bool(laws)
         if hidden:
@@ -108,8 +114,13 @@ class Branches:
         if hidden:
             equations.append(_equation(self.z, [_estimate(t.expr, fit.coef_[i], fit, i) for t, fit, i in laws]))
         states = self.states if hidden else tuple(s for s in self.states if s.name() != self.z)
-        return IdentifiedModel(states=states, inputs=(self.u,), equations=tuple(equations),
-                               kinematics=((self.y, self.v),), measured=(self.y,))
+        return IdentifiedModel(
+            states=states,
+            inputs=(self.u,),
+            equations=tuple(equations),
+            kinematics=((self.y, self.v),),
+            measured=(self.y,),
+        )
 
     def with_latent(self, model: IdentifiedModel, keep: bool) -> IdentifiedModel:
         """The chosen branch in the states asked for: without a hidden law, ``z' = 0`` and ``z`` used nowhere."""
@@ -162,5 +173,5 @@ def _estimate(expr, coef, fit=None, i=None) -> TermEstimate:
 
 
 def _equation(lhs: str, terms) -> Equation:
-    cov = np.diag([t.std ** 2 for t in terms]) if terms else np.zeros((0, 0))
+    cov = np.diag([t.std**2 for t in terms]) if terms else np.zeros((0, 0))
     return Equation(lhs, tuple(terms), cov, math.nan, math.nan, 0)

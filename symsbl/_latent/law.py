@@ -61,8 +61,9 @@ def evaluate(terms, variables):
 
     def values_of(values: dict) -> np.ndarray:
         n = len(next(iter(values.values())))
-        return evaluator.evaluate(np.column_stack([np.broadcast_to(np.asarray(values[v.name()], dtype=float), (n,))
-                                                   for v in variables]))
+        return evaluator.evaluate(
+            np.column_stack([np.broadcast_to(np.asarray(values[v.name()], dtype=float), (n,)) for v in variables])
+        )
 
     return values_of
 
@@ -111,8 +112,9 @@ class WeakForm:
         A, target = A[self.rows], target[self.rows]
         w = self.n_eff / A.shape[0]
         gram, dty = A.T @ A, A.T @ target[:, None]
-        return GramStats(w * gram, w * dty, w * np.array([target @ target]), w * np.array([target.sum()]),
-                         int(round(self.n_eff)))
+        return GramStats(
+            w * gram, w * dty, w * np.array([target @ target]), w * np.array([target.sum()]), int(round(self.n_eff))
+        )
 
 
 def screen(stats: GramStats, free=()) -> RVM:

@@ -85,10 +85,10 @@ def _repeat_lag(u: np.ndarray) -> int | None:
     corr = np.fft.irfft(np.abs(spectrum) ** 2, 2 * n)[:n]  # sum_i x[i] x[i + L]
     c2 = np.concatenate([[0.0], np.cumsum(x * x)])
     lags = np.arange(1, n // MIN_PERIODS + 1)
-    head = c2[n - lags]                       # sum of x[:-L]^2
-    tail = c2[n] - c2[lags]                   # sum of x[L:]^2
+    head = c2[n - lags]  # sum of x[:-L]^2
+    tail = c2[n] - c2[lags]  # sum of x[L:]^2
     distance = np.maximum(head + tail - 2 * corr[lags], 0.0)
-    ok = np.flatnonzero(distance <= REPEAT_TOL ** 2 * 0.5 * (head + tail))
+    ok = np.flatnonzero(distance <= REPEAT_TOL**2 * 0.5 * (head + tail))
     ok = ok[lags[ok] >= 4]
     return int(lags[ok[0]]) if ok.size else None
 
@@ -130,15 +130,26 @@ def split_periods(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> Periods | None
 def whole_record(t: np.ndarray, u: np.ndarray, y: np.ndarray) -> Periods:
     """A record taken whole, as one 'period' (see :class:`Spectra` with ``periodic=False``)."""
     dt = _uniform_step(t)
-    return Periods(fs=float(1.0 / dt), U=np.asarray(u, dtype=float)[None, :], Y=np.asarray(y, dtype=float)[None, :],
-                   start=0, dropped=0)
+    return Periods(
+        fs=float(1.0 / dt),
+        U=np.asarray(u, dtype=float)[None, :],
+        Y=np.asarray(y, dtype=float)[None, :],
+        start=0,
+        dropped=0,
+    )
 
 
 def _uniform_step(t: np.ndarray) -> float:
     dt = np.diff(t)
     if dt.size < 8 or not np.allclose(dt, dt[0], rtol=1e-6, atol=0.0):
-        raise DataError(expected("data", "a uniformly sampled record (a latent state is reconstructed spectrally)",
-                                 "non-uniform sample times", raw=True))
+        raise DataError(
+            expected(
+                "data",
+                "a uniformly sampled record (a latent state is reconstructed spectrally)",
+                "non-uniform sample times",
+                raw=True,
+            )
+        )
     return float(dt[0])
 
 
@@ -147,7 +158,7 @@ def _is_transient(Y: np.ndarray) -> bool:
     rest = Y[1:]
     noise_var = float(np.mean(rest.var(axis=0, ddof=1)))
     expected_var = noise_var * (1.0 + 1.0 / rest.shape[0])
-    return float(np.mean((Y[0] - rest.mean(axis=0)) ** 2)) > TRANSIENT_RATIO ** 2 * expected_var
+    return float(np.mean((Y[0] - rest.mean(axis=0)) ** 2)) > TRANSIENT_RATIO**2 * expected_var
 
 
 def raised_cosine(f: np.ndarray, f_pass: float, f_stop: float) -> np.ndarray:
@@ -196,9 +207,16 @@ class Spectra:
         self.excited = amplitude > 1e-2 * amplitude.max()
         self.excited[0] = False
         if self.excited.sum() < MIN_LINES:
-            raise DataError(expected(
-                "data", f"an input exciting at least {MIN_LINES} frequencies (the skeleton and the hidden law need a "
-                "broadband input)", f"{int(self.excited.sum())} excited frequencies", "use a multisine", raw=True))
+            raise DataError(
+                expected(
+                    "data",
+                    f"an input exciting at least {MIN_LINES} frequencies (the skeleton and the hidden law need a "
+                    "broadband input)",
+                    f"{int(self.excited.sum())} excited frequencies",
+                    "use a multisine",
+                    raw=True,
+                )
+            )
         nyquist = periods.fs / 2
         self.f_max = float(self.f[self.excited].max()) if periodic else _power_band(self.f, amplitude)
         self.band = raised_cosine(self.f, min(self.f_max, 0.9 * nyquist), min(4 / 3 * self.f_max, nyquist))
@@ -211,15 +229,21 @@ class Spectra:
         self.u = np.fft.irfft(self.Uf, N)
         self.y = self.filtered(self.Yf) + trend
         self.v = self.filtered(self.iw * self.Yf) + slope
-        self.a = self.filtered(self.iw ** 2 * self.Yf)
+        self.a = self.filtered(self.iw**2 * self.Yf)
         self.valid = np.ones(N, dtype=bool)
         if not periodic:
             edge = int(np.ceil(EDGE_CYCLES * periods.fs / (self.f_max / 4)))
             if N < 4 * edge:
-                raise DataError(expected(
-                    "data", f"a transient record of at least {4 * edge} samples ({EDGE_CYCLES:g} cycles of "
-                    f"f_max / 4 = {self.f_max / 4:.3g} Hz are left out at each end)", f"{N} samples",
-                    "record longer, or several whole periods of a periodic input", raw=True))
+                raise DataError(
+                    expected(
+                        "data",
+                        f"a transient record of at least {4 * edge} samples ({EDGE_CYCLES:g} cycles of "
+                        f"f_max / 4 = {self.f_max / 4:.3g} Hz are left out at each end)",
+                        f"{N} samples",
+                        "record longer, or several whole periods of a periodic input",
+                        raw=True,
+                    )
+                )
             self.valid[:edge] = self.valid[-edge:] = False
 
     def filtered(self, spectrum: np.ndarray) -> np.ndarray:

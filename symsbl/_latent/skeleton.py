@@ -71,7 +71,7 @@ def fit_linear(spectra: Spectra) -> Skeleton:
     exc = spectra.excited
     w = spectra.iw.imag[exc]
     U, Y = spectra.Uf[exc], spectra.Yf[exc]
-    A = np.column_stack([-w ** 2 * Y, 1j * w * Y, Y])   # U = A (m, c, k): equation error, a start
+    A = np.column_stack([-(w**2) * Y, 1j * w * Y, Y])  # U = A (m, c, k): equation error, a start
     A2 = np.vstack([A.real, A.imag])
     norms = np.linalg.norm(A2, axis=0)
     start, *_ = np.linalg.lstsq(A2 / norms, np.concatenate([U.real, U.imag]), rcond=None)
@@ -80,7 +80,7 @@ def fit_linear(spectra: Spectra) -> Skeleton:
 
     def residual(q):
         m, c, k = q * scale
-        e = Y - U / (k - m * w ** 2 + 1j * c * w)
+        e = Y - U / (k - m * w**2 + 1j * c * w)
         return np.concatenate([e.real, e.imag])
 
     sol = least_squares(residual, np.sign(start) + (start == 0), method="lm", xtol=1e-14, ftol=1e-14)
@@ -101,7 +101,7 @@ def _fit_linear_record(spectra: Spectra) -> Skeleton:
     residual = spectra.u[keep] - A @ (coef / scale)
     cov = np.linalg.pinv((A / scale).T @ (A / scale)) * float(residual @ residual) / max(keep.sum() - 3, 1)
     std = np.sqrt(np.diag(cov)) / scale
-    return Skeleton(m, c, k, std=tuple(std), criterion=float(np.sqrt(np.mean(residual ** 2))), evaluations=1)
+    return Skeleton(m, c, k, std=tuple(std), criterion=float(np.sqrt(np.mean(residual**2))), evaluations=1)
 
 
 def split(criterion, linear: Skeleton) -> Skeleton:
@@ -133,8 +133,13 @@ def split(criterion, linear: Skeleton) -> Skeleton:
     for i in np.argsort(values)[:3]:
         q0 = grid[i]
         simplex = np.array([q0, q0 + [0.1, 0, 0], q0 + [0, 0.05 + 0.3 * q0[1], 0], q0 + [0, 0, 0.05]])
-        sol = minimize(objective, q0, method="Nelder-Mead", bounds=SPLIT_BOX,
-                       options=dict(xatol=1e-5, fatol=1e-7, maxiter=2000, initial_simplex=simplex))
+        sol = minimize(
+            objective,
+            q0,
+            method="Nelder-Mead",
+            bounds=SPLIT_BOX,
+            options=dict(xatol=1e-5, fatol=1e-7, maxiter=2000, initial_simplex=simplex),
+        )
         evaluations += int(sol.nfev)
         if best is None or sol.fun < best.fun:
             best = sol

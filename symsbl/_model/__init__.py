@@ -5,5 +5,15 @@ from .model import IdentifiedModel
 from .outputs import AccelerationOutput, AlgebraicOutput, Output, StateOutput
 from .path import ModelPath, PathEntry
 
-__all__ = ["Equation", "FitMethod", "IdentifiedModel", "ModelPath", "PathEntry", "TermEstimate", "Output",
-           "StateOutput", "AccelerationOutput", "AlgebraicOutput"]
+__all__ = [
+    "Equation",
+    "FitMethod",
+    "IdentifiedModel",
+    "ModelPath",
+    "PathEntry",
+    "TermEstimate",
+    "Output",
+    "StateOutput",
+    "AccelerationOutput",
+    "AlgebraicOutput",
+]

@@ -26,6 +26,7 @@ class FitMethod(str, enum.Enum):
     def __str__(self) -> str:
         return self.value
 
+
 @dataclass(frozen=True)
 class TermEstimate:
     """Posterior of one kept term of one equation.
@@ -120,8 +121,9 @@ class Equation:
         return cls(lhs, (term,), np.zeros((1, 1)), math.nan, math.nan, 0, fixed=True)
 
     @classmethod
-    def from_fit(cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=(),
-                 algebraic: bool = False) -> Equation:
+    def from_fit(
+        cls, lhs: str, exprs, fit, n_rows: int, alternatives=None, runners_up=(), algebraic: bool = False
+    ) -> Equation:
         """The equation of a fitted :class:`~symsbl.RVM`: one term per kept column, in ``fit.active_`` order.
 
         Parameters
@@ -143,13 +145,26 @@ class Equation:
         active = [int(i) for i in fit.active_]
         alternatives = alternatives or [()] * len(active)
         terms = tuple(
-            TermEstimate(expr=e, coef=float(fit.coef_[i]), std=float(math.sqrt(fit.sigma_[pos, pos])),
-                         alpha=float(fit.alpha_[i]), evidence=float(fit.evidence_contribution_[pos]),
-                         alternatives=tuple(alt))
+            TermEstimate(
+                expr=e,
+                coef=float(fit.coef_[i]),
+                std=float(math.sqrt(fit.sigma_[pos, pos])),
+                alpha=float(fit.alpha_[i]),
+                evidence=float(fit.evidence_contribution_[pos]),
+                alternatives=tuple(alt),
+            )
             for pos, (i, e, alt) in enumerate(zip(active, exprs, alternatives))
         )
-        return cls(lhs, terms, np.array(fit.sigma_), float(fit.noise_var_), float(fit.log_evidence_), int(n_rows),
-                   runners_up=tuple(runners_up), algebraic=algebraic)
+        return cls(
+            lhs,
+            terms,
+            np.array(fit.sigma_),
+            float(fit.noise_var_),
+            float(fit.log_evidence_),
+            int(n_rows),
+            runners_up=tuple(runners_up),
+            algebraic=algebraic,
+        )
 
     @property
     def coefs(self) -> np.ndarray:
@@ -182,8 +197,11 @@ class Equation:
             return f"{self.lhs}' = " + " + ".join(pretty(t.name) for t in self.terms) + "  (kinematics, fixed)"
         parts: list[str] = []
         for t in self.terms:
-            text = format_uncertain(t.coef, t.std, signed=bool(parts)) if not t.fixed else (
-                f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")
+            text = (
+                format_uncertain(t.coef, t.std, signed=bool(parts))
+                if not t.fixed
+                else (f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")
+            )
             label = pretty(t.name)
             body = text if label == "1" else f"{text} {label}"
             if t.fixed:

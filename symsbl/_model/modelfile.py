@@ -44,8 +44,16 @@ from .estimates import Equation, TermEstimate
 from .outputs import AlgebraicOutput, check_outputs, output_from_json
 from .path import PATH_SOURCES, ModelPath
 
-__all__ = ["JSON_VERSION", "READABLE_VERSIONS", "MAX_MODEL_TERMS", "MAX_MODEL_NODES", "model_to_json",
-           "model_from_json", "save_model", "load_model"]
+__all__ = [
+    "JSON_VERSION",
+    "READABLE_VERSIONS",
+    "MAX_MODEL_TERMS",
+    "MAX_MODEL_NODES",
+    "model_to_json",
+    "model_from_json",
+    "save_model",
+    "load_model",
+]
 
 #: The version this release writes.
 JSON_VERSION = 2
@@ -79,20 +87,30 @@ def model_to_json(model) -> dict[str, Any]:
     """The JSON document of ``model`` (a dict of plain Python values)."""
     equations = []
     for eq in model.equations:
-        equations.append({
-            "lhs": eq.lhs,
-            "rhs": str(eq.rhs_sympy()),
-            "fixed": eq.fixed,
-            **({"algebraic": True} if eq.algebraic else {}),
-            "terms": [{"term": t.name, "coef": t.coef, "std": t.std, "alpha": _finite_or_none(t.alpha),
-                       "evidence": _finite_or_none(t.evidence), "alternatives": list(t.alternatives),
-                       **({"fixed": True} if t.fixed else {})}
-                      for t in eq.terms],
-            "noise_std": _finite_or_none(math.sqrt(eq.noise_var)) if np.isfinite(eq.noise_var) else None,
-            "log_evidence": _finite_or_none(eq.log_evidence),
-            "n_rows": eq.n_rows,
-            "covariance": np.asarray(eq.covariance).tolist(),
-        })
+        equations.append(
+            {
+                "lhs": eq.lhs,
+                "rhs": str(eq.rhs_sympy()),
+                "fixed": eq.fixed,
+                **({"algebraic": True} if eq.algebraic else {}),
+                "terms": [
+                    {
+                        "term": t.name,
+                        "coef": t.coef,
+                        "std": t.std,
+                        "alpha": _finite_or_none(t.alpha),
+                        "evidence": _finite_or_none(t.evidence),
+                        "alternatives": list(t.alternatives),
+                        **({"fixed": True} if t.fixed else {}),
+                    }
+                    for t in eq.terms
+                ],
+                "noise_std": _finite_or_none(math.sqrt(eq.noise_var)) if np.isfinite(eq.noise_var) else None,
+                "log_evidence": _finite_or_none(eq.log_evidence),
+                "n_rows": eq.n_rows,
+                "covariance": np.asarray(eq.covariance).tolist(),
+            }
+        )
     doc = {
         "format": "symsbl-model",
         "version": JSON_VERSION,
@@ -101,8 +119,7 @@ def model_to_json(model) -> dict[str, Any]:
         "fit": model.fit.value,
         "kinematics": {x: v for x, v in model.kinematics},
         "measured": list(model.measured_names),
-        **({"outputs": [o.to_json() for o in model.outputs]} if any(o.kind != "state" for o in model.outputs)
-           else {}),
+        **({"outputs": [o.to_json() for o in model.outputs]} if any(o.kind != "state" for o in model.outputs) else {}),
         "latent": {name: model.convention(name) for name in model.latent_names},
         "equations": equations,
         "metadata": _jsonable(model.metadata),
@@ -152,14 +169,21 @@ def _names(doc: dict, key: str, default=...) -> tuple[str, ...]:
 
 def _header(doc) -> tuple[tuple[str, ...], tuple[str, ...], list]:
     if not isinstance(doc, dict):
-        raise DataError(expected(_WHERE, "a JSON object written by `symsbl identify --json`", type(doc).__name__,
-                                 raw=True))
+        raise DataError(
+            expected(_WHERE, "a JSON object written by `symsbl identify --json`", type(doc).__name__, raw=True)
+        )
     if doc.get("format", "symsbl-model") != "symsbl-model":
         raise DataError(expected(f"{_WHERE}.format", "'symsbl-model'", doc.get("format")))
     version = doc.get("version", 1)
     if isinstance(version, bool) or version not in READABLE_VERSIONS:
-        raise DataError(expected(f"{_WHERE}.version", f"one of {list(READABLE_VERSIONS)}", version,
-                                 "the file was written by a newer symsbl; upgrade to read it"))
+        raise DataError(
+            expected(
+                f"{_WHERE}.version",
+                f"one of {list(READABLE_VERSIONS)}",
+                version,
+                "the file was written by a newer symsbl; upgrade to read it",
+            )
+        )
     fit = doc.get("fit", "equation-error")
     if fit not in FITS:
         raise DataError(expected(f"{_WHERE}.fit", f"one of {list(FITS)}", fit))
@@ -194,9 +218,13 @@ def _term(raw, where: str, cas: dict, term_cls):
     evidence = _field(raw, "evidence", where, "number", default=None, what="a finite number or null")
     fixed = _field(raw, "fixed", where, bool, default=False, what="true or false")
     return term_cls(
-        expr=expr, coef=_field(raw, "coef", where, "number"), std=math.nan if std is None else std,
-        alpha=math.nan if alpha is None else alpha, evidence=math.nan if evidence is None else evidence,
-        alternatives=tuple(alternatives), fixed=fixed,
+        expr=expr,
+        coef=_field(raw, "coef", where, "number"),
+        std=math.nan if std is None else std,
+        alpha=math.nan if alpha is None else alpha,
+        evidence=math.nan if evidence is None else evidence,
+        alternatives=tuple(alternatives),
+        fixed=fixed,
     )
 
 
@@ -208,17 +236,20 @@ def _covariance(raw: dict, where: str, terms) -> np.ndarray:
     try:
         arr = np.array(cov, dtype=float)
     except (TypeError, ValueError):
-        raise DataError(expected(f"{where}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries",
-                                 raw=True)) from None
+        raise DataError(
+            expected(f"{where}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries", raw=True)
+        ) from None
     if arr.size == 0 and n == 0:
         return np.zeros((0, 0))
     if arr.shape != (n, n) or not np.all(np.isfinite(arr)):
         got = f"shape {arr.shape}" if arr.shape != (n, n) else "non-finite entries"
-        raise DataError(expected(f"{where}.covariance", f"a finite {n} x {n} array (one row per term)", got,
-                                 raw=True))
+        raise DataError(expected(f"{where}.covariance", f"a finite {n} x {n} array (one row per term)", got, raw=True))
     if not np.allclose(arr, arr.T, rtol=1e-6, atol=0) or np.any(np.diag(arr) < 0):
-        raise DataError(expected(f"{where}.covariance", "a symmetric matrix with a non-negative diagonal",
-                                 "one that is not", raw=True))
+        raise DataError(
+            expected(
+                f"{where}.covariance", "a symmetric matrix with a non-negative diagonal", "one that is not", raw=True
+            )
+        )
     return arr
 
 
@@ -233,8 +264,11 @@ def _check_rhs(raw: dict, where: str, cas: dict, terms) -> None:
         raise DataError(str(err)) from None
     total = sum((t.coef * t.expr for t in terms), ca.SX(0))
     variables = list(cas.values())
-    f = ca.Function("rhs_check", [ca.vertcat(*variables)], [rhs, total, sum((abs(t.coef) * ca.fabs(t.expr)
-                                                                                for t in terms), ca.SX(0))])
+    f = ca.Function(
+        "rhs_check",
+        [ca.vertcat(*variables)],
+        [rhs, total, sum((abs(t.coef) * ca.fabs(t.expr) for t in terms), ca.SX(0))],
+    )
     rng = np.random.default_rng(7)
     # probes of either sign, then positive ones: a term such as sqrt(h) is defined for h > 0 only, where
     # both sides must agree; outside a term's domain both sides must be undefined alike
@@ -244,8 +278,15 @@ def _check_rhs(raw: dict, where: str, cas: dict, terms) -> None:
         if not math.isfinite(a) and not math.isfinite(b):
             continue
         if not (math.isfinite(a) and math.isfinite(b)) or abs(a - b) > 1e-9 * max(scale, 1e-300):
-            raise DataError(expected(f"{where}.rhs", "the sum of the equation's terms", repr(text)[:80],
-                                     "edit 'terms' (the source of truth) and delete or regenerate 'rhs'", raw=True))
+            raise DataError(
+                expected(
+                    f"{where}.rhs",
+                    "the sum of the equation's terms",
+                    repr(text)[:80],
+                    "edit 'terms' (the source of truth) and delete or regenerate 'rhs'",
+                    raw=True,
+                )
+            )
 
 
 def _equation(raw, where: str, states, cas: dict, seen: list, algebraic=()):
@@ -254,8 +295,11 @@ def _equation(raw, where: str, states, cas: dict, seen: list, algebraic=()):
     lhs = _field(raw, "lhs", where, str)
     is_algebraic = _field(raw, "algebraic", where, bool, default=False, what="true or false")
     if lhs not in (algebraic if is_algebraic else states) or lhs in seen:
-        what = (f"one equation per algebraic output {list(algebraic)}" if is_algebraic
-                else f"one equation per state {list(states)}")
+        what = (
+            f"one equation per algebraic output {list(algebraic)}"
+            if is_algebraic
+            else f"one equation per state {list(states)}"
+        )
         raise DataError(expected(f"{where}.lhs", what, lhs))
     seen.append(lhs)
     raw_terms = _field(raw, "terms", where, list)
@@ -269,18 +313,25 @@ def _equation(raw, where: str, states, cas: dict, seen: list, algebraic=()):
     if isinstance(n_rows, bool) or not isinstance(n_rows, int) or n_rows < 0:
         raise DataError(expected(f"{where}.n_rows", "an integer >= 0", n_rows))
     fixed = _field(raw, "fixed", where, bool, default=False, what="true or false")
-    return Equation(lhs=lhs, terms=tuple(terms), covariance=_covariance(raw, where, terms),
-                    noise_var=math.nan if noise_std is None else noise_std**2,
-                    log_evidence=math.nan if log_evidence is None else log_evidence, n_rows=n_rows, fixed=fixed,
-                    algebraic=is_algebraic)
+    return Equation(
+        lhs=lhs,
+        terms=tuple(terms),
+        covariance=_covariance(raw, where, terms),
+        noise_var=math.nan if noise_std is None else noise_std**2,
+        log_evidence=math.nan if log_evidence is None else log_evidence,
+        n_rows=n_rows,
+        fixed=fixed,
+        algebraic=is_algebraic,
+    )
 
 
 def _kinematics(doc, states) -> tuple:
     pairs = _field(doc, "kinematics", _WHERE, dict, default={}, what="an object {position: velocity}")
     for x, v in pairs.items():
         if x not in states or not isinstance(v, str) or v not in states or v == x:
-            raise DataError(expected(f"{_WHERE}.kinematics", f"position: velocity pairs of the states {list(states)}",
-                                     {x: v}))
+            raise DataError(
+                expected(f"{_WHERE}.kinematics", f"position: velocity pairs of the states {list(states)}", {x: v})
+            )
     return tuple(pairs.items())
 
 
@@ -309,11 +360,18 @@ def _joint_covariance(doc, n: int) -> np.ndarray | None:
     try:
         arr = np.array(doc["covariance"], dtype=float)
     except (TypeError, ValueError):
-        raise DataError(expected(f"{_WHERE}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries",
-                                 raw=True)) from None
+        raise DataError(
+            expected(f"{_WHERE}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries", raw=True)
+        ) from None
     if arr.shape != (n, n) or not np.all(np.isfinite(arr)) or not np.allclose(arr, arr.T, rtol=1e-6, atol=0):
-        raise DataError(expected(f"{_WHERE}.covariance", f"a finite symmetric {n} x {n} array (one row per "
-                                 "coefficient)", f"shape {arr.shape}", raw=True))
+        raise DataError(
+            expected(
+                f"{_WHERE}.covariance",
+                f"a finite symmetric {n} x {n} array (one row per coefficient)",
+                f"shape {arr.shape}",
+                raw=True,
+            )
+        )
     return arr
 
 
@@ -321,9 +379,15 @@ def _bounded(count: int, most: int, what: str) -> None:
     """Refuse a model file asking for more work than any identification gives: re-simulating it costs time and
     memory in proportion to its terms and their expressions."""
     if count > most:
-        raise DataError(expected(f"{_WHERE}.equations", f"at most {most} {what} in all (the most a model of this "
-                                 "release is re-simulated with)", f"{count}", "a model file holds the terms an "
-                                 "identification kept; check where this one came from", raw=True))
+        raise DataError(
+            expected(
+                f"{_WHERE}.equations",
+                f"at most {most} {what} in all (the most a model of this release is re-simulated with)",
+                f"{count}",
+                "a model file holds the terms an identification kept; check where this one came from",
+                raw=True,
+            )
+        )
 
 
 def _path(doc) -> ModelPath:
@@ -335,17 +399,32 @@ def _path(doc) -> ModelPath:
     ok = isinstance(raw, dict) and isinstance(raw.get("entries", []), list) and isinstance(raw.get("rule", ""), str)
     if ok:
         for e in raw.get("entries", []):
-            ok = ok and isinstance(e, dict) and isinstance(e.get("terms"), dict) and all(
-                isinstance(k, str) and isinstance(v, list) and all(isinstance(n, str) for n in v)
-                for k, v in e["terms"].items())
+            ok = (
+                ok
+                and isinstance(e, dict)
+                and isinstance(e.get("terms"), dict)
+                and all(
+                    isinstance(k, str) and isinstance(v, list) and all(isinstance(n, str) for n in v)
+                    for k, v in e["terms"].items()
+                )
+            )
             ok = ok and isinstance(e.get("n_terms"), int) and not isinstance(e.get("n_terms"), bool)
-            ok = ok and all(k in e and (e[k] is None or (isinstance(e[k], (int, float)) and not isinstance(e[k], bool)))
-                            for k in ("log_evidence", "objective", "cv_error", "cv_se"))
+            ok = ok and all(
+                k in e and (e[k] is None or (isinstance(e[k], (int, float)) and not isinstance(e[k], bool)))
+                for k in ("log_evidence", "objective", "cv_error", "cv_se")
+            )
             ok = ok and e.get("source") in PATH_SOURCES and isinstance(e.get("chosen"), bool)
     if not ok:
-        raise DataError(expected(where, "an object {rule, entries: [{terms, n_terms, log_evidence, objective, "
-                                 "cv_error, cv_se, source, chosen}]} as symsbl writes it", "another layout",
-                                 "delete 'path' (it is optional)", raw=True))
+        raise DataError(
+            expected(
+                where,
+                "an object {rule, entries: [{terms, n_terms, log_evidence, objective, "
+                "cv_error, cv_se, source, chosen}]} as symsbl writes it",
+                "another layout",
+                "delete 'path' (it is optional)",
+                raw=True,
+            )
+        )
     return ModelPath.from_json(raw)
 
 
@@ -361,17 +440,28 @@ def model_from_json(cls, doc):
     cas = {s.name(): s for s in syms}
     outputs = _outputs(doc)
     algebraic = tuple(o.name for o in outputs if isinstance(o, AlgebraicOutput))
-    _bounded(sum(len(raw["terms"]) for raw in raw_equations if isinstance(raw, dict) and
-                 isinstance(raw.get("terms"), list)), MAX_MODEL_TERMS, "terms")
+    _bounded(
+        sum(len(raw["terms"]) for raw in raw_equations if isinstance(raw, dict) and isinstance(raw.get("terms"), list)),
+        MAX_MODEL_TERMS,
+        "terms",
+    )
     seen: list = []
-    equations = [_equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen, algebraic)
-                 for k, raw in enumerate(raw_equations)]
+    equations = [
+        _equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen, algebraic) for k, raw in enumerate(raw_equations)
+    ]
     _bounded(sum(ca.n_nodes(t.expr) for eq in equations for t in eq.terms), MAX_MODEL_NODES, "expression nodes")
     missing = [s for s in states + algebraic if s not in seen]
     if missing:
-        raise DataError(expected(f"{_WHERE}.equations", f"one equation per state {list(states)} and per algebraic "
-                                 f"output {list(algebraic)}" if algebraic else f"one equation per state {list(states)}",
-                                 f"none for {missing}", raw=True))
+        raise DataError(
+            expected(
+                f"{_WHERE}.equations",
+                f"one equation per state {list(states)} and per algebraic output {list(algebraic)}"
+                if algebraic
+                else f"one equation per state {list(states)}",
+                f"none for {missing}",
+                raw=True,
+            )
+        )
     order = {name: i for i, name in enumerate(states + algebraic)}
     equations.sort(key=lambda e: order[e.lhs])
     kinematics = _kinematics(doc, states)
@@ -380,10 +470,18 @@ def model_from_json(cls, doc):
     if not isinstance(metadata, dict):
         raise DataError(expected(f"{_WHERE}.metadata", "a JSON object", type(metadata).__name__, raw=True))
     n_coefs = sum(len(eq.terms) for eq in equations)
-    return cls(states=syms[:len(states)], inputs=syms[len(states):], equations=tuple(equations), metadata=metadata,
-               fit=doc.get("fit", "equation-error"), kinematics=kinematics,
-               measured=_measured(doc, states, outputs), joint_covariance=_joint_covariance(doc, n_coefs),
-               path=_path(doc), outputs=outputs)
+    return cls(
+        states=syms[: len(states)],
+        inputs=syms[len(states) :],
+        equations=tuple(equations),
+        metadata=metadata,
+        fit=doc.get("fit", "equation-error"),
+        kinematics=kinematics,
+        measured=_measured(doc, states, outputs),
+        joint_covariance=_joint_covariance(doc, n_coefs),
+        path=_path(doc),
+        outputs=outputs,
+    )
 
 
 def load_model(cls, path):
@@ -401,6 +499,7 @@ def load_model(cls, path):
     try:
         doc = json.loads(text)
     except (json.JSONDecodeError, RecursionError) as err:
-        raise DataError(expected(f"model file {str(path)!r}", "valid JSON", f"invalid JSON ({err})"[:160],
-                                 raw=True)) from None
+        raise DataError(
+            expected(f"model file {str(path)!r}", "valid JSON", f"invalid JSON ({err})"[:160], raw=True)
+        ) from None
     return model_from_json(cls, doc)

@@ -25,8 +25,17 @@ import casadi as ca
 
 from .._base.errors import DataError, expected
 
-__all__ = ["Output", "StateOutput", "AccelerationOutput", "AlgebraicOutput", "OUTPUT_KINDS", "state_outputs",
-           "output_from_json", "latent_of", "check_outputs"]
+__all__ = [
+    "Output",
+    "StateOutput",
+    "AccelerationOutput",
+    "AlgebraicOutput",
+    "OUTPUT_KINDS",
+    "state_outputs",
+    "output_from_json",
+    "latent_of",
+    "check_outputs",
+]
 
 
 @dataclass(frozen=True)
@@ -192,8 +201,9 @@ def latent_of(states: Sequence[str], outputs: Sequence[Output], kinematics) -> t
     return tuple(s for s in states if s not in observed)
 
 
-def check_outputs(outputs: Sequence[Output], states: Sequence[str], algebraic: Sequence[str], kinematics,
-                  where: str = "outputs") -> tuple[Output, ...]:
+def check_outputs(
+    outputs: Sequence[Output], states: Sequence[str], algebraic: Sequence[str], kinematics, where: str = "outputs"
+) -> tuple[Output, ...]:
     """``outputs`` checked against the model: a state output reads a state, an acceleration the velocity of a
     kinematic pair, an algebraic output names an algebraic equation; names are distinct from each other and
     from the other states and inputs."""
@@ -206,11 +216,21 @@ def check_outputs(outputs: Sequence[Output], states: Sequence[str], algebraic: S
         if isinstance(o, StateOutput) and o.name not in states:
             raise DataError(expected(f"{where}: {o.name!r}", f"a state among {list(states)}", o.name, raw=True))
         if isinstance(o, AccelerationOutput) and (o.velocity not in velocities or o.name in states):
-            raise DataError(expected(f"{where}: {o.name!r}", "the acceleration of the velocity of a position-velocity "
-                                     f"pair {sorted(velocities)}, named unlike the states", o.velocity, raw=True))
+            raise DataError(
+                expected(
+                    f"{where}: {o.name!r}",
+                    "the acceleration of the velocity of a position-velocity "
+                    f"pair {sorted(velocities)}, named unlike the states",
+                    o.velocity,
+                    raw=True,
+                )
+            )
         if isinstance(o, AlgebraicOutput) and (o.name not in algebraic or o.name in states):
-            raise DataError(expected(f"{where}: {o.name!r}", f"an algebraic equation of the model {list(algebraic)}",
-                                     o.name, raw=True))
+            raise DataError(
+                expected(
+                    f"{where}: {o.name!r}", f"an algebraic equation of the model {list(algebraic)}", o.name, raw=True
+                )
+            )
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
         raise DataError(expected(where, "one output per column", f"{dupes} more than once", raw=True))
@@ -220,8 +240,14 @@ def check_outputs(outputs: Sequence[Output], states: Sequence[str], algebraic: S
 def output_from_json(raw, where: str) -> Output:
     """An output of a model file, read as data."""
     if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or raw.get("kind") not in OUTPUT_KINDS:
-        raise DataError(expected(where, "an object {name, kind} with kind one of " + str(list(OUTPUT_KINDS)),
-                                 raw if not isinstance(raw, dict) else {k: raw[k] for k in list(raw)[:3]}, raw=False))
+        raise DataError(
+            expected(
+                where,
+                "an object {name, kind} with kind one of " + str(list(OUTPUT_KINDS)),
+                raw if not isinstance(raw, dict) else {k: raw[k] for k in list(raw)[:3]},
+                raw=False,
+            )
+        )
     if raw["kind"] == "acceleration":
         if not isinstance(raw.get("of"), str):
             raise DataError(expected(f"{where}.of", "the name of the velocity state", raw.get("of")))

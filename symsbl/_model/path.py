@@ -59,18 +59,32 @@ class PathEntry:
 
     def to_json(self) -> dict:
         finite = lambda v: float(v) if math.isfinite(v) else None  # noqa: E731 - JSON has no inf
-        return {"terms": {lhs: list(names) for lhs, names in self.terms}, "n_terms": self.n_terms,
-                "log_evidence": finite(self.log_evidence), "objective": finite(self.objective),
-                "cv_error": finite(self.cv_error), "cv_se": finite(self.cv_se), "source": self.source,
-                "chosen": self.chosen}
+        return {
+            "terms": {lhs: list(names) for lhs, names in self.terms},
+            "n_terms": self.n_terms,
+            "log_evidence": finite(self.log_evidence),
+            "objective": finite(self.objective),
+            "cv_error": finite(self.cv_error),
+            "cv_se": finite(self.cv_se),
+            "source": self.source,
+            "chosen": self.chosen,
+        }
 
     @classmethod
     def from_json(cls, doc: dict) -> PathEntry:
         def num(v):
             return math.inf if v is None else float(v)
-        return cls(tuple((lhs, tuple(names)) for lhs, names in doc["terms"].items()), int(doc["n_terms"]),
-                   num(doc["log_evidence"]), num(doc["objective"]), num(doc["cv_error"]), num(doc["cv_se"]),
-                   str(doc["source"]), bool(doc["chosen"]))
+
+        return cls(
+            tuple((lhs, tuple(names)) for lhs, names in doc["terms"].items()),
+            int(doc["n_terms"]),
+            num(doc["log_evidence"]),
+            num(doc["objective"]),
+            num(doc["cv_error"]),
+            num(doc["cv_se"]),
+            str(doc["source"]),
+            bool(doc["chosen"]),
+        )
 
 
 @dataclass(frozen=True)
@@ -112,8 +126,10 @@ class ModelPath:
             structure = "; ".join(f"{lhs}: {', '.join(names) or '0'}" for lhs, names in e.terms)
             cv = f"{100 * e.cv_error:12.4g}" if math.isfinite(e.cv_error) else f"{'diverged':>12}"
             se = f"{100 * e.cv_se:7.2g}" if math.isfinite(e.cv_se) else f"{'':>7}"
-            rows.append(f"{'*' if e.chosen else ' '} {e.n_terms:5d}  {e.log_evidence:12.6g}  {e.objective:10.6g}  "
-                        f"{cv}   {se}   {e.source:<14}  {structure}")
+            rows.append(
+                f"{'*' if e.chosen else ' '} {e.n_terms:5d}  {e.log_evidence:12.6g}  {e.objective:10.6g}  "
+                f"{cv}   {se}   {e.source:<14}  {structure}"
+            )
         if self.rule:
             rows.append(f"(* chosen: {self.rule})")
         return "\n".join(rows)

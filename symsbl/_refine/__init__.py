@@ -56,10 +56,21 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
     return [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan], note
 
 
-def refine(model: IdentifiedModel, data, *, measured=None, library: Library | None = None, select: bool = True,
-           interpolation: str = "cubic", substeps="auto", smooth: bool = True, max_samples: int = MAX_SAMPLES,
-           jit="auto", options: RefineOptions | None = None, selection: SelectionRule | None = None
-           ) -> IdentifiedModel:
+def refine(
+    model: IdentifiedModel,
+    data,
+    *,
+    measured=None,
+    library: Library | None = None,
+    select: bool = True,
+    interpolation: str = "cubic",
+    substeps="auto",
+    smooth: bool = True,
+    max_samples: int = MAX_SAMPLES,
+    jit="auto",
+    options: RefineOptions | None = None,
+    selection: SelectionRule | None = None,
+) -> IdentifiedModel:
     """Re-estimate a model's coefficients by output error, with the Laplace posterior and evidence.
 
     Every coefficient of the equations that are not fixed (kinematic equations ``x' = v`` are exact)
@@ -133,55 +144,49 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     if not isinstance(model, IdentifiedModel):
         raise ParameterError(expected("model", "an IdentifiedModel", type(model).__name__, raw=True))
     records, measured = check_records(model, data, measured)
-    given = RefineOptions(select=select, interpolation=interpolation, substeps=substeps, smooth=smooth,
-                          max_samples=max_samples, jit=jit)
-    if options is not None and given != RefineOptions():
-        raise ParameterError(expected("options", "the refinement's options given once: as keywords or as a "
-                                      "RefineOptions", "both", "pass only options=RefineOptions(...)", raw=True))
-    opts = as_options(given if options is None else options, "options")
+    given = RefineOptions(
+        select=select, interpolation=interpolation, substeps=substeps, smooth=smooth, max_samples=max_samples, jit=jit
+    )
+    opts = _options(given, options)
     rule = _rule(selection)
     if not any(not eq.fixed and eq.terms for eq in model.equations):
         raise ParameterError(expected("model", "at least one equation with terms to fit", "none", raw=True))
     clock = stopwatch()
     used, note = _windows(records, opts.max_samples)
-    settings = Settings(interpolation=opts.interpolation, substeps=opts.substeps, smooth=opts.smooth, jit=opts.jit,
-                        noise=opts.noise, doubts=opts.doubts)
+    settings = Settings(
+        interpolation=opts.interpolation,
+        substeps=opts.substeps,
+        smooth=opts.smooth,
+        jit=opts.jit,
+        noise=opts.noise,
+        doubts=opts.doubts,
+    )
     select = opts.select
     rebased = None
     if library is not None:
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
         rebased = Rebased(library, model)
-    screening = select and rebased is not None and bool(set(model.state_names) - set(measured))
-    # with a state not measured, the screen and the selection first work on short segments, where a term missing
-    # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
-    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule,
-                                     short=screening)
-    rounds, seen, proposed = 1, {_structure(model)}, [screened]
-    while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
-        # the screen scored its candidates at the equation-error structure; from the new one it may see others
-        seen.add(_structure(refined))
-        refined, screened = _refine_once(refined, used, measured, settings, select, rebased, screening, rule,
-                                         short=True)
-        proposed.append(screened)
-        rounds += 1
-    if screening:
-        refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
-        rounds += 1
+    refined, rounds, proposed = _rounds(model, used, measured, settings, select, rebased, rule)
     info = refined.metadata["refine"]
     stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
     if not stuck and select and rule.model_choice != "evidence":  # the structure that validates
         n_candidates = len(rebased) if rebased is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
-        refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates,
-                                   info["short_segments"])
+        refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates, info["short_segments"])
     meta = refined.metadata["refine"]
     if len(used) != len(records):  # windows of the records were fitted: their noise levels are not the records'
         for channel in meta.get("noise", {}).values():
             channel.pop("innovation_std_by_record", None)
-    meta.update(samples=note, smoothed_sign=opts.smooth, rounds=rounds,
-                screened={lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
-                          for lhs in dict.fromkeys(k for p in proposed for k in p)},
-                seconds=round(clock(), 3))
+    meta.update(
+        samples=note,
+        smoothed_sign=opts.smooth,
+        rounds=rounds,
+        screened={
+            lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
+            for lhs in dict.fromkeys(k for p in proposed for k in p)
+        },
+        seconds=round(clock(), 3),
+    )
     if meta["hypersensitive"]:
         _warn_hypersensitive(meta, float(np.mean([r.dt for r in used])))
     if meta["doubts"] or not meta["hypersensitive"]:  # a hypersensitive record's residual follows its input anyway
@@ -189,14 +194,55 @@ def refine(model: IdentifiedModel, data, *, measured=None, library: Library | No
     return refined
 
 
+def _options(given: RefineOptions, options) -> RefineOptions:
+    """The refinement's options: the keywords ``given`` or ``options``, not both."""
+    if options is not None and given != RefineOptions():
+        raise ParameterError(
+            expected(
+                "options",
+                "the refinement's options given once: as keywords or as a RefineOptions",
+                "both",
+                "pass only options=RefineOptions(...)",
+                raw=True,
+            )
+        )
+    return as_options(given if options is None else options, "options")
+
+
+def _rounds(model, used, measured, settings, select, rebased, rule) -> tuple[IdentifiedModel, int, list]:
+    """The rounds of screening and selection until the structure repeats: the model, the number of rounds and
+    the terms each round's screen proposed."""
+    screening = select and rebased is not None and bool(set(model.state_names) - set(measured))
+    # with a state not measured, the screen and the selection first work on short segments, where a term missing
+    # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
+    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule, short=screening)
+    rounds, seen, proposed = 1, {_structure(model)}, [screened]
+    while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
+        # the screen scored its candidates at the equation-error structure; from the new one it may see others
+        seen.add(_structure(refined))
+        refined, screened = _refine_once(
+            refined, used, measured, settings, select, rebased, screening, rule, short=True
+        )
+        proposed.append(screened)
+        rounds += 1
+    if screening:
+        refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
+        rounds += 1
+    return refined, rounds, proposed
+
+
 def _warn_hypersensitive(meta: dict, dt: float) -> None:
     """One RefineWarning: the model amplifies a state error beyond :data:`PHI_STOP` within the record."""
-    warnings.warn(RefineWarning(
-        f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
-        f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
-        f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
-        "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
-        "does)"), stacklevel=3)
+    warnings.warn(
+        RefineWarning(
+            f"output-error refinement: the record is hypersensitive (chaotic-like): the model amplifies a state "
+            f"error {PHI_STOP:g}-fold within {meta['horizon']} samples ({meta['horizon'] * dt:.3g} s), so it was "
+            f"fitted on segments of {meta['segment_length']} samples and its response over the whole record hangs on "
+            "rounding-level changes of its coefficients and initial state; judge it over short horizons (validate "
+            "does)"
+        ),
+        stacklevel=3,
+    )
 
 
 def _warn(meta: dict) -> None:
@@ -204,33 +250,61 @@ def _warn(meta: dict) -> None:
     to short segments), or the residual depends on an input (model error: the structure is not validated)."""
     if meta["doubts"] and not meta["adapted"]:
         if meta["biased"]:  # non-white innovations alone are recorded: the fit is the usual one
-            warnings.warn(RefineWarning("output-error refinement: its likelihood is doubtful here (" + "; ".join(
-                meta["doubts"]) + "); the fit and its evidence are reported as they are (doubts='report')"),
-                stacklevel=3)
+            warnings.warn(
+                RefineWarning(
+                    "output-error refinement: its likelihood is doubtful here ("
+                    + "; ".join(meta["doubts"])
+                    + "); the fit and its evidence are reported as they are (doubts='report')"
+                ),
+                stacklevel=3,
+            )
         return
     if meta["biased"]:
-        what = " and ".join(w for w, on in (("the record looks closed-loop", meta["closed_loop"]),
-                                            ("the measured input is noisy", meta["input_noise"])) if on)
-        warnings.warn(RefineWarning(f"output-error refinement: {what}, where output error is biased, so no term was "
-                                    "selected on its evidence (identify reports the equation error's model where every "
-                                    "state is measured): "
-                                    + "; ".join(meta["doubts"])), stacklevel=3)
+        what = " and ".join(
+            w
+            for w, on in (
+                ("the record looks closed-loop", meta["closed_loop"]),
+                ("the measured input is noisy", meta["input_noise"]),
+            )
+            if on
+        )
+        warnings.warn(
+            RefineWarning(
+                f"output-error refinement: {what}, where output error is biased, so no term was "
+                "selected on its evidence (identify reports the equation error's model where every "
+                "state is measured): " + "; ".join(meta["doubts"])
+            ),
+            stacklevel=3,
+        )
         return
     if meta["doubts"]:
-        warnings.warn(RefineWarning(
-            "output-error refinement: the residual is not measurement noise the noise model describes ("
-            + "; ".join(meta["doubts"]) + f"), so it was fitted on segments of at most {meta['short_segments']} "
-            "samples, each from its own initial state, where no disturbance accumulates (identify reports the equation "
-            "error's model where every state is measured)"), stacklevel=3)
+        warnings.warn(
+            RefineWarning(
+                "output-error refinement: the residual is not measurement noise the noise model describes ("
+                + "; ".join(meta["doubts"])
+                + f"), so it was fitted on segments of at most {meta['short_segments']} "
+                "samples, each from its own initial state, where no disturbance accumulates (identify reports the "
+                "equation error's model where every state is measured)"
+            ),
+            stacklevel=3,
+        )
         return
-    worse = [f"{t['channel']} on {k} ({r:.2g} x the threshold)" for t in meta["residual"]
-             for k, r in t["input_ratio"].items() if r > 1]
+    worse = [
+        f"{t['channel']} on {k} ({r:.2g} x the threshold)"
+        for t in meta["residual"]
+        for k, r in t["input_ratio"].items()
+        if r > 1
+    ]
     if worse:
-        warnings.warn(RefineWarning(
-            "output-error refinement: the residual depends on the input: " + ", ".join(worse) + f" (the "
-            f"{100 * (1 - RESIDUAL_LEVEL):g} % cross-correlation test): the model misrepresents how the input acts (a "
-            "missing or wrong term, the input's interpolation, a delay), and its structure is not validated by this "
-            "record"), stacklevel=3)
+        warnings.warn(
+            RefineWarning(
+                "output-error refinement: the residual depends on the input: " + ", ".join(worse) + f" (the "
+                f"{100 * (1 - RESIDUAL_LEVEL):g} % cross-correlation test): the model misrepresents how the input "
+                "acts (a missing or wrong term, the input's interpolation, a delay), and its structure is not "
+                "validated by this record"
+            ),
+            stacklevel=3,
+        )
 
 
 #: Rounds of screening and selection at most when a state is not measured.
@@ -249,8 +323,17 @@ def _rule(selection) -> SelectionRule:
     return selection.check()
 
 
-def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, select: bool, library: Rebased | None,
-                 screening: bool, rule: SelectionRule, short: bool = False):
+def _refine_once(
+    model: IdentifiedModel,
+    used,
+    measured,
+    settings: Settings,
+    select: bool,
+    library: Rebased | None,
+    screening: bool,
+    rule: SelectionRule,
+    short: bool = False,
+):
     """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
     screen proposed. ``short``: every fit on segments of the first length of the continuation."""
     guess = state_guess(model, used, measured)
@@ -281,8 +364,15 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 assert library is not None  # refine() screens only with a library
                 once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
-                screened = screen_terms(lambda recs, cands: Engine(model, recs, measured, once, cands), model, used,
-                                        sol, engine, library, lambda n: rule.nats_per_term(n, n_candidates))
+                screened = screen_terms(
+                    lambda recs, cands: Engine(model, recs, measured, once, cands),
+                    model,
+                    used,
+                    sol,
+                    engine,
+                    library,
+                    lambda n: rule.nats_per_term(n, n_candidates),
+                )
                 engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
             sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             bar.update()
@@ -296,21 +386,44 @@ def _refine_once(model: IdentifiedModel, used, measured, settings: Settings, sel
                 sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             tests = residual_tests(engine, sol)
         fraction = residual_fraction(engine, sol)
-    reach = record_horizon(engine, sol)
-    info = {"refine": {  # to_model adds the substeps, the interpolation and the noise model
-        "segment_length": int(sol.length), "stages": sol.stages, "horizon": reach, "hypersensitive": reach is not None,
-        "penalty": sol.penalty,
-        "passes": int(sol.n_pass), "log_evidence": float(sol.posterior.log_evidence), "screened": screened,
-        "effective_fraction": round(fraction, 4), "residual": [as_record(t) for t in tests],
-        "doubts": list(doubted.reasons), "closed_loop": doubted.closed_loop, "input_noise": doubted.input_noise,
-        "biased": doubted.biased, "short_segments": engine.longest,
-        "adapted": adapt}}
+    info = _info(engine, sol, screened, fraction, tests, doubted, adapt)
     return to_model(engine, sol, info), screened
 
 
-def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None,
-                   options: RefineOptions | dict | None = None, note: str | None = None,
-                   selection: SelectionRule | None = None) -> IdentifiedModel:
+def _info(engine: Engine, sol, screened: dict, fraction: float, tests, doubted, adapt: bool) -> dict:
+    """What the model file records of one refinement: its segments, evidence, residual tests and doubts."""
+    reach = record_horizon(engine, sol)
+    return {
+        "refine": {  # to_model adds the substeps, the interpolation and the noise model
+            "segment_length": int(sol.length),
+            "stages": sol.stages,
+            "horizon": reach,
+            "hypersensitive": reach is not None,
+            "penalty": sol.penalty,
+            "passes": int(sol.n_pass),
+            "log_evidence": float(sol.posterior.log_evidence),
+            "screened": screened,
+            "effective_fraction": round(fraction, 4),
+            "residual": [as_record(t) for t in tests],
+            "doubts": list(doubted.reasons),
+            "closed_loop": doubted.closed_loop,
+            "input_noise": doubted.input_noise,
+            "biased": doubted.biased,
+            "short_segments": engine.longest,
+            "adapted": adapt,
+        }
+    }
+
+
+def refine_or_keep(
+    model: IdentifiedModel,
+    records,
+    *,
+    library: Library | None,
+    options: RefineOptions | dict | None = None,
+    note: str | None = None,
+    selection: SelectionRule | None = None,
+) -> IdentifiedModel:
     """The refinement :func:`symsbl.identify` runs by default: :func:`refine` with ``options``; when the
     simulation diverges on the records (a model the data cannot integrate), a
     :class:`~symsbl.RefineWarning` and the equation-error model, with ``metadata["refine"]["failed"]``
@@ -324,5 +437,6 @@ def refine_or_keep(model: IdentifiedModel, records, *, library: Library | None,
         return dataclasses.replace(model, metadata=dict(model.metadata, refine={"failed": str(error)}))
     if note is None:
         return refined
-    return dataclasses.replace(refined, metadata=dict(refined.metadata,
-                                                      refine=dict(refined.metadata["refine"], samples=note)))
+    return dataclasses.replace(
+        refined, metadata=dict(refined.metadata, refine=dict(refined.metadata["refine"], samples=note))
+    )

@@ -32,8 +32,11 @@ class Rebased:
         names = library.variable_names
         missing = [n for n in names if n not in own]
         if missing:
-            raise ParameterError(expected("library", f"terms of the model's states and inputs {list(own)}",
-                                          f"terms of {missing}", raw=True))
+            raise ParameterError(
+                expected(
+                    "library", f"terms of the model's states and inputs {list(own)}", f"terms of {missing}", raw=True
+                )
+            )
         old, new = ca.vertcat(*library.variables), ca.vertcat(*(own[n] for n in names))
         self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in library.terms)
         self._by_name = {t.name: t for t in self.terms}
@@ -96,8 +99,9 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     return out, twins
 
 
-def look_alikes(eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray, values: np.ndarray,
-                finite: np.ndarray) -> dict:
+def look_alikes(
+    eq, library: Rebased, model: IdentifiedModel, Z: np.ndarray, values: np.ndarray, finite: np.ndarray
+) -> dict:
     """Per free term of ``eq``, the library term (not in ``eq``, not already its alternative or runner-up)
     whose values on ``Z``, with the equation's other terms projected out, are closest in direction to the
     term's, when their partial cosine reaches :data:`LOOK_ALIKE`, else for a term that is not a polynomial
@@ -159,7 +163,7 @@ def prior(engine: Engine) -> np.ndarray:
             alpha.extend(own_alpha(t) for t in full.terms if not t.fixed)
             continue
         D = term_values([t.expr for t in full.terms], model, Z)
-        scale = float(np.std(D[:, :len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
+        scale = float(np.std(D[:, : len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
         for k, t in enumerate(full.terms):
             if t.fixed:
                 continue

@@ -94,8 +94,8 @@ def _downdated(blocks, theta: np.ndarray, alpha: np.ndarray, active: np.ndarray,
     H, g = restrict(blocks.H[keep], blocks.g[keep], active, npar)
     a = alpha[active]
     S, _, _ = schur(H, a)
-    pinv, _, _ = x0_pinv(H[:, a.size:, a.size:])
-    gt = g[:, :a.size].sum(0) - np.einsum("kpi,kij,kj->p", H[:, :a.size, a.size:], pinv, g[:, a.size:])
+    pinv, _, _ = x0_pinv(H[:, a.size :, a.size :])
+    gt = g[:, : a.size].sum(0) - np.einsum("kpi,kij,kj->p", H[:, : a.size, a.size :], pinv, g[:, a.size :])
     step = np.linalg.lstsq(S, gt - a * theta[active], rcond=None)[0]
     out = theta.copy()
     out[active] = theta[active] + step
@@ -122,8 +122,9 @@ def cross_validate(passes: Passes, sol: Solution, cv: Folds) -> CrossValidation:
         # the fold's initial state fitted on its lead (the other segments' states do not matter), then the fold
         # simulated free from it to its end
         lead_starts = np.unique(np.concatenate([starts, [a + cv.lead]]))
-        it, _ = initial_states(passes, Iterate(theta, simulated[lead_starts], passes.segments(lead_starts), sol.w,
-                                               ar=sol.ar), sweeps=4)
+        it, _ = initial_states(
+            passes, Iterate(theta, simulated[lead_starts], passes.segments(lead_starts), sol.w, ar=sol.ar), sweeps=4
+        )
         x0 = simulated[starts].copy()
         x0[np.searchsorted(starts, a)] = it.X0[np.searchsorted(lead_starts, a)]
         sim = passes.outputs(theta, x0, seg)

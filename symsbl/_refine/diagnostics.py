@@ -65,7 +65,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
     # inflate the correlations' spread (by 1.8 for two halves at 1:4) and the tests would reject white noise;
     # and each record's inputs in units of their spread there, for the same reason
     scale = np.sqrt(passes.per_record(sol.w))[seg.record_of_segment]
-    spread = np.array([np.std(U[a:a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
+    spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
     out = []
     for c, name in enumerate(engine.measured):
@@ -76,23 +76,40 @@ def _tests(engine, sol) -> list[ResidualTest]:
             e = (innovations(R[a:b, c], noise.ar[c]) if p else R[a:b, c]) * scale[k, c]
             keep = np.isfinite(e)
             es.append(e[keep])
-            us.append(U[a + p:b][keep] * u_scale[k])
+            us.append(U[a + p : b][keep] * u_scale[k])
         if not es:
             continue
         e, u = np.concatenate(es), np.concatenate(us)
         if e.size <= 4 * LAGS:
             continue
         inputs = {m: u[:, k] for k, m in enumerate(engine.model.input_names) if np.std(u[:, k]) > 0}
-        out.append(residual_test(name, e, inputs, LAGS, int(np.count_nonzero(noise.ar[c])) if p else 0,
-                                 family=len(engine.measured) * max(len(engine.model.input_names), 1)))
+        out.append(
+            residual_test(
+                name,
+                e,
+                inputs,
+                LAGS,
+                int(np.count_nonzero(noise.ar[c])) if p else 0,
+                family=len(engine.measured) * max(len(engine.model.input_names), 1),
+            )
+        )
     return out
 
 
 def as_record(t: ResidualTest) -> dict:
     """A residual test as the model file records it (plain values)."""
-    return {"channel": t.channel, "samples": t.n_samples, "lags": t.lags, "whiteness_p": float(t.whiteness_p),
-            "input_ratio": t.input_ratio, "feedback_ratio": t.feedback_ratio, "white": t.white,
-            "independent": t.independent, "open_loop": t.open_loop, "predictable": float(t.predictable)}
+    return {
+        "channel": t.channel,
+        "samples": t.n_samples,
+        "lags": t.lags,
+        "whiteness_p": float(t.whiteness_p),
+        "input_ratio": t.input_ratio,
+        "feedback_ratio": t.feedback_ratio,
+        "white": t.white,
+        "independent": t.independent,
+        "open_loop": t.open_loop,
+        "predictable": float(t.predictable),
+    }
 
 
 def _relative_noise(values: list[np.ndarray]) -> float:
@@ -131,8 +148,10 @@ def noisy_inputs(records, measured, inputs) -> tuple[str, ...]:
     for name in inputs:
         level = _relative_noise([r.column(name) for r in records])
         if floor > 0 and level > INPUT_NOISE * floor:
-            reasons.append(f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
-                           f"{100 * floor:.2g} % on the outputs): errors in variables")
+            reasons.append(
+                f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
+                f"{100 * floor:.2g} % on the outputs): errors in variables"
+            )
     return tuple(reasons)
 
 
@@ -142,9 +161,11 @@ def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
     reasons, loop = [], False
     for t in tests:
         if not t.white and t.independent:  # a residual the input explains is a missing term: the selection's job
-            reasons.append(f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
-                           f"{100 * t.predictable:.2g} % of their variance predictable from their past): "
-                           "process noise, input noise or model error")
+            reasons.append(
+                f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
+                f"{100 * t.predictable:.2g} % of their variance predictable from their past): "
+                "process noise, input noise or model error"
+            )
         fed = sorted(k for k, r in t.feedback_ratio.items() if r > 1)
         if fed:
             loop = True

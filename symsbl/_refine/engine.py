@@ -48,8 +48,15 @@ class Settings:
 class Engine:
     """The compiled structure (the model and its candidates) and the records of one refinement."""
 
-    def __init__(self, model: IdentifiedModel, records, measured, settings: Settings, candidates: dict,
-                 guess: np.ndarray | None = None):
+    def __init__(
+        self,
+        model: IdentifiedModel,
+        records,
+        measured,
+        settings: Settings,
+        candidates: dict,
+        guess: np.ndarray | None = None,
+    ):
         """``measured``: the channels fitted (names of the model's outputs, or states as they are); ``guess``:
         :func:`state_guess` of ``records`` when the caller has it (else computed)."""
         self.outputs = resolve_outputs(model, measured)
@@ -105,20 +112,33 @@ class Engine:
         :data:`SPECTRUM_SAMPLES` / 4 samples (a record that sweeps upwards has its highest frequency late)."""
         r = max(self.records, key=lambda tr: tr.n_samples)
         n = SPECTRUM_SAMPLES // 4 if r.n_samples > SPECTRUM_SAMPLES else r.n_samples
-        windows = [_window(r.t[a:a + n], np.column_stack([r.column(m)[a:a + n] for m in self.measured]))
-                   for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))]  # 0.5 / f_hi
+        windows = [
+            _window(r.t[a : a + n], np.column_stack([r.column(m)[a : a + n] for m in self.measured]))
+            for a in np.unique(np.linspace(0, r.n_samples - n, 4).astype(int))
+        ]  # 0.5 / f_hi
         return int(max(64, 8 * min(windows)))
 
-    def fit(self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None,
-            longest: int | None = None) -> Solution:
+    def fit(
+        self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None, longest: int | None = None
+    ) -> Solution:
         """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
         from the segments and initial states of ``warm`` when given, else by continuation from short segments
         up to ``longest`` samples (default: whole records, or the engine's :attr:`longest`)."""
         if self.longest is not None:
             longest = self.longest if longest is None else min(int(longest), self.longest)
-        sol = fit(self.passes, theta0, alpha0, self.guess, active=np.asarray(active, dtype=int),
-                  length0=self.length0, growth=self.settings.growth, w=None if warm is None else warm.w, warm=warm,
-                  longest=longest, noise=self.noise)
+        sol = fit(
+            self.passes,
+            theta0,
+            alpha0,
+            self.guess,
+            active=np.asarray(active, dtype=int),
+            length0=self.length0,
+            growth=self.settings.growth,
+            w=None if warm is None else warm.w,
+            warm=warm,
+            longest=longest,
+            noise=self.noise,
+        )
         if self.noise == "auto":
             self.noise = sol.noise.order
         return sol
@@ -140,8 +160,9 @@ def record_horizon(engine: Engine, sol: Solution) -> int | None:
     reach = horizon(sol.stages)
     if reach is None or reach >= full:
         return None
-    whole = _resegment(passes, Iterate(sol.theta, sol.X0, passes.segments(sol.starts), sol.w),
-                       passes.segment_starts(full))
+    whole = _resegment(
+        passes, Iterate(sol.theta, sol.X0, passes.segments(sol.starts), sol.w), passes.segment_starts(full)
+    )
     blocks = passes.sensitivities(sol.theta, whole.X0, whole.seg, sol.w)
     phi = _growth(blocks.end_S, sol.theta.size, _state_scale(engine.guess, sol.X0))
     return horizon([{"length": full, "growth": phi}]) if phi > PHI_STOP else None
@@ -164,10 +185,8 @@ def residual_fraction(engine: Engine, sol: Solution) -> float:
         for c in range(R.shape[1]):
             for a, b in zip(seg.starts, ends):
                 if b - a > noise.order:
-                    E[a + noise.order:b, c] = innovations(np.where(valid[a:b, c], R[a:b, c], np.nan), noise.ar[c])
+                    E[a + noise.order : b, c] = innovations(np.where(valid[a:b, c], R[a:b, c], np.nan), noise.ar[c])
         R = E
         valid = valid & np.isfinite(R)
     fractions = [effective_fraction(R[valid[:, c], c]) for c in range(R.shape[1]) if valid[:, c].sum() > 8]
     return max(min(fractions, default=1.0), 1e-3)
-
-

@@ -30,8 +30,16 @@ __all__ = ["initial_state", "fitted_start", "short_horizons"]
 FIRST_STRETCH, GROWTH = 256, 8
 
 
-def initial_state(model: IdentifiedModel, data: Trajectory, observed, guess: np.ndarray, *, interpolation: str,
-                  substeps: int, length: int) -> np.ndarray:
+def initial_state(
+    model: IdentifiedModel,
+    data: Trajectory,
+    observed,
+    guess: np.ndarray,
+    *,
+    interpolation: str,
+    substeps: int,
+    length: int,
+) -> np.ndarray:
     """The state at ``data``'s first sample that best explains its first ``length`` samples.
 
     The stretch grows from :data:`FIRST_STRETCH` samples by :data:`GROWTH`, each fit starting from the last.
@@ -50,12 +58,19 @@ def initial_state(model: IdentifiedModel, data: Trajectory, observed, guess: np.
         Samples used (longer is more precise for a damped system, but a chaotic one amplifies errors
         beyond the length an output-error fit stopped at).
     """
-    return fitted_start(model, data, observed, guess, interpolation=interpolation, substeps=substeps,
-                        length=length)[0]
+    return fitted_start(model, data, observed, guess, interpolation=interpolation, substeps=substeps, length=length)[0]
 
 
-def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.ndarray, *, interpolation: str,
-                 substeps: int, length: int) -> tuple[np.ndarray, int | None]:
+def fitted_start(
+    model: IdentifiedModel,
+    data: Trajectory,
+    observed,
+    guess: np.ndarray,
+    *,
+    interpolation: str,
+    substeps: int,
+    length: int,
+) -> tuple[np.ndarray, int | None]:
     """:func:`initial_state`, and the samples within which the model amplifies a state error
     :data:`~symsbl._refine.solver.PHI_STOP`-fold on ``data`` (from the growth over the fitted stretch; None
     when it does not grow)."""
@@ -63,8 +78,9 @@ def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.n
     x0 = np.asarray(guess, dtype=float)
     span = min(n, FIRST_STRETCH)
     while True:
-        x0, phi = _fit(model, data.slice(0, span), observed, x0, interpolation, substeps,
-                       jit="auto" if span == n else False)
+        x0, phi = _fit(
+            model, data.slice(0, span), observed, x0, interpolation, substeps, jit="auto" if span == n else False
+        )
         if span == n:
             break
         span = min(n, span * GROWTH)
@@ -79,8 +95,9 @@ def fitted_start(model: IdentifiedModel, data: Trajectory, observed, guess: np.n
     return x0, (horizon([{"length": data.n_samples, "growth": phi}]) if phi > PHI_STOP else None)
 
 
-def short_horizons(model: IdentifiedModel, data: Trajectory, observed, *, interpolation: str, substeps: int,
-                   length: int) -> np.ndarray:
+def short_horizons(
+    model: IdentifiedModel, data: Trajectory, observed, *, interpolation: str, substeps: int, length: int
+) -> np.ndarray:
     """``data`` re-simulated in stretches of ``length`` samples, each from the initial state that best explains
     it: ``(n_samples, n_states)``. The validation of a model on a record it is hypersensitive on, where one
     simulation of the whole record says nothing (a state error outgrows the response within the record)."""
@@ -89,7 +106,7 @@ def short_horizons(model: IdentifiedModel, data: Trajectory, observed, *, interp
     starts = passes.segment_starts(max(int(length), 8))
     seg = passes.segments(starts)
     it, _ = initial_states(passes, Iterate(np.zeros(0), guess[starts].copy(), seg, w), sweeps=8, rtol=0.0)
-    return passes.simulate(np.zeros(0), it.X0, seg)[:data.n_samples]
+    return passes.simulate(np.zeros(0), it.X0, seg)[: data.n_samples]
 
 
 def _smoothed(model: IdentifiedModel, record: Trajectory, observed) -> IdentifiedModel:

@@ -29,8 +29,16 @@ import numpy as np
 
 from .._base.errors import SimulationError, expected
 
-__all__ = ["Posterior", "posterior", "reduce_model", "reprior", "mackay_alpha", "mackay_fixed_point", "schur",
-           "x0_pinv"]
+__all__ = [
+    "Posterior",
+    "posterior",
+    "reduce_model",
+    "reprior",
+    "mackay_alpha",
+    "mackay_fixed_point",
+    "schur",
+    "x0_pinv",
+]
 
 
 @dataclass(frozen=True)
@@ -88,8 +96,9 @@ def schur(H: np.ndarray, alpha: np.ndarray):
     return S, log_det, n_kept
 
 
-def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, n_obs: np.ndarray,
-              w: np.ndarray) -> Posterior:
+def posterior(
+    H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, n_obs: np.ndarray, w: np.ndarray
+) -> Posterior:
     """The Laplace posterior and log evidence at an optimum.
 
     Parameters
@@ -105,19 +114,31 @@ def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, 
         Measurements and noise precision per channel (of each record).
     """
     if not (np.all(np.isfinite(H)) and np.all(np.isfinite(theta)) and np.isfinite(cost)):
-        raise SimulationError(expected("output-error refinement", "a simulation and sensitivities that stay finite "
-                                       "at the optimum", "non-finite values (the model diverges on this record)",
-                                       "the equation-error model stands", raw=True))
+        raise SimulationError(
+            expected(
+                "output-error refinement",
+                "a simulation and sensitivities that stay finite at the optimum",
+                "non-finite values (the model diverges on this record)",
+                "the equation-error model stands",
+                raw=True,
+            )
+        )
     S_data, log_det_x0, n_x0 = schur(H, np.zeros_like(alpha))  # the prior enters only the diagonal
     S_data = 0.5 * (S_data + S_data.T)
     S = S_data + np.diag(alpha)
     curvature = np.diag(S)
     if not np.all(curvature > 0):  # S_data is positive semi-definite: only round-off makes a diagonal <= 0
-        raise SimulationError(expected(
-            "output-error refinement", "a positive curvature of the fit in every coefficient",
-            f"{int(np.sum(~(curvature > 0)))} of {curvature.size} coefficients with curvature <= 0 once the initial "
-            "states are integrated out (round-off: the record does not separate them from the initial states)",
-            "the equation-error model stands", raw=True))
+        raise SimulationError(
+            expected(
+                "output-error refinement",
+                "a positive curvature of the fit in every coefficient",
+                f"{int(np.sum(~(curvature > 0)))} of {curvature.size} coefficients with curvature <= 0 once the "
+                "initial states are integrated out (round-off: the record does not separate them from the initial "
+                "states)",
+                "the equation-error model stands",
+                raw=True,
+            )
+        )
     d = np.sqrt(curvature)
     ev, V = np.linalg.eigh(S / np.outer(d, d))
     ev = np.maximum(ev, 1e-14 * max(float(ev.max()), 1e-300))  # round-off, not information
@@ -125,8 +146,13 @@ def posterior(H: np.ndarray, theta: np.ndarray, alpha: np.ndarray, cost: float, 
     log_det = float(np.sum(np.log(ev)) + 2 * np.sum(np.log(d)))
     n_obs, w = np.asarray(n_obs, dtype=float), np.asarray(w, dtype=float)
     data = np.where(n_obs > 0, n_obs * np.log(np.where(n_obs > 0, w, 1.0) / (2 * np.pi)), 0.0)
-    log_ev = (0.5 * float(np.sum(data)) + 0.5 * float(np.sum(np.log(alpha))) - cost
-              + 0.5 * n_x0 * np.log(2 * np.pi) - 0.5 * (log_det_x0 + log_det))
+    log_ev = (
+        0.5 * float(np.sum(data))
+        + 0.5 * float(np.sum(np.log(alpha)))
+        - cost
+        + 0.5 * n_x0 * np.log(2 * np.pi)
+        - 0.5 * (log_det_x0 + log_det)
+    )
     return Posterior(np.array(theta, dtype=float), cov, float(log_ev), log_det_x0, n_x0, S, S_data)
 
 
@@ -211,8 +237,12 @@ def reprior(post: Posterior, alpha: np.ndarray, new_alpha: np.ndarray) -> Poster
     d = np.sqrt(np.maximum(np.diag(P_new), 1e-300))
     scaled = P_new / np.outer(d, d)
     mean = np.linalg.solve(scaled, (P @ post.mean) / d) / d
-    change = 0.5 * (float(np.sum(np.log(new_alpha) - np.log(alpha))) + _scaled_logdet(P) - _scaled_logdet(P_new)
-                    - float(mean @ (delta * post.mean)))
+    change = 0.5 * (
+        float(np.sum(np.log(new_alpha) - np.log(alpha)))
+        + _scaled_logdet(P)
+        - _scaled_logdet(P_new)
+        - float(mean @ (delta * post.mean))
+    )
     cov = np.linalg.inv(scaled) / np.outer(d, d)
     return Posterior(mean, 0.5 * (cov + cov.T), post.log_evidence + change, post.log_det_x0, post.n_x0, P_new, data)
 
@@ -246,7 +276,7 @@ def reduce_model(post: Posterior, alpha: np.ndarray, off) -> tuple[float, np.nda
         d = np.sqrt(np.maximum(np.diag(Pkk), 1e-300))
         solved = np.linalg.solve(Pkk / np.outer(d, d), np.column_stack([Pkr, Pkr @ post.mean[R]]) / d[:, None])
         solved /= d[:, None]
-        C = Prr - Pkr.T @ solved[:, :R.size]
+        C = Prr - Pkr.T @ solved[:, : R.size]
         mean = post.mean[keep] + solved[:, R.size]
         cov = np.linalg.inv(Pkk / np.outer(d, d)) / np.outer(d, d)
         logdet_k = _scaled_logdet(Pkk)

@@ -175,8 +175,16 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
     return entries
 
 
-def choose_structure(start: IdentifiedModel, refined: IdentifiedModel, records, measured, settings: Settings,
-                     rule: SelectionRule, n_candidates: int, longest: int | None = None) -> IdentifiedModel:
+def choose_structure(
+    start: IdentifiedModel,
+    refined: IdentifiedModel,
+    records,
+    measured,
+    settings: Settings,
+    rule: SelectionRule,
+    n_candidates: int,
+    longest: int | None = None,
+) -> IdentifiedModel:
     """The structure the identification keeps, with the model path it was chosen from.
 
     Parameters
@@ -207,17 +215,34 @@ def choose_structure(start: IdentifiedModel, refined: IdentifiedModel, records, 
     chosen, reason = rule.choose(sizes, objectives, E, floor=_noise_floor(engine.passes))
     mean = mean_errors(E)
     best = int(np.argmin(mean))
-    path = ModelPath(tuple(PathEntry(_names(engine, entries[k][0].active), sizes[k],
-                                     float(entries[k][0].posterior.log_evidence), objectives[k], float(mean[k]),
-                                     paired_se(E[k], E[best]), entries[k][1], k == chosen)
-                           for k in sorted(range(len(entries)), key=lambda k: (sizes[k], -objectives[k]))), reason)
+    path = ModelPath(
+        tuple(
+            PathEntry(
+                _names(engine, entries[k][0].active),
+                sizes[k],
+                float(entries[k][0].posterior.log_evidence),
+                objectives[k],
+                float(mean[k]),
+                paired_se(E[k], E[best]),
+                entries[k][1],
+                k == chosen,
+            )
+            for k in sorted(range(len(entries)), key=lambda k: (sizes[k], -objectives[k]))
+        ),
+        reason,
+    )
     sol = entries[chosen][0]
     if entries[chosen][1] == "evidence":
         return dataclasses.replace(refined, path=path)
     sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
     meta = dict(refined.metadata.get("refine", {}))
-    meta.update(segment_length=int(sol.length), stages=sol.stages, passes=int(sol.n_pass),
-                log_evidence=float(sol.posterior.log_evidence),
-                effective_fraction=round(residual_fraction(engine, sol), 4),
-                residual=[as_record(t) for t in residual_tests(engine, sol)], chosen_by=reason)
+    meta.update(
+        segment_length=int(sol.length),
+        stages=sol.stages,
+        passes=int(sol.n_pass),
+        log_evidence=float(sol.posterior.log_evidence),
+        effective_fraction=round(residual_fraction(engine, sol), 4),
+        residual=[as_record(t) for t in residual_tests(engine, sol)],
+        chosen_by=reason,
+    )
     return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)

@@ -23,8 +23,17 @@ from .._model import IdentifiedModel
 from .._model.outputs import Output, StateOutput
 from .._simulation.signals import Sampled
 
-__all__ = ["Parameterisation", "Records", "INTERPOLATIONS", "check_records", "choose_substeps", "window_plan",
-           "N_WINDOWS", "SUBSTEP_TOL", "resolve_outputs"]
+__all__ = [
+    "Parameterisation",
+    "Records",
+    "INTERPOLATIONS",
+    "check_records",
+    "choose_substeps",
+    "window_plan",
+    "N_WINDOWS",
+    "SUBSTEP_TOL",
+    "resolve_outputs",
+]
 
 #: How a measured input runs between its samples (see :class:`symsbl.Sampled`).
 INTERPOLATIONS = ("linear", "cubic", "periodic", "hold")
@@ -191,11 +200,11 @@ class Records:
         DT = np.zeros(total)
         for r, s in zip(records, starts):
             n = r.n_samples
-            Y[s:s + n] = np.column_stack([r.column(m) for m in names])
-            UD[s + 1:s + n] = _stage_values(r, model.input_names, interpolation, substeps)
+            Y[s : s + n] = np.column_stack([r.column(m) for m in names])
+            UD[s + 1 : s + n] = _stage_values(r, model.input_names, interpolation, substeps)
             if model.input_names:
-                UN[s:s + n] = np.column_stack([r.column(u) for u in model.input_names])
-            DT[s + 1:s + n] = np.diff(r.t)
+                UN[s : s + n] = np.column_stack([r.column(u) for u in model.input_names])
+            DT[s + 1 : s + n] = np.diff(r.t)
         states = model.state_names
         index = tuple(states.index(o.state) for o in outputs) if all(o.state is not None for o in outputs) else None
         return cls(Y, UD, DT, starts, lengths, outputs, interpolation, substeps, UN, index)
@@ -219,8 +228,14 @@ def resolve_outputs(model: IdentifiedModel, measured) -> tuple[Output, ...]:
         elif m in model.state_names:
             out.append(StateOutput(m))
         else:
-            raise DataError(expected("measured", f"outputs of the model {list(by_name)} or its states "
-                                     f"{list(model.state_names)}", m, raw=False))
+            raise DataError(
+                expected(
+                    "measured",
+                    f"outputs of the model {list(by_name)} or its states {list(model.state_names)}",
+                    m,
+                    raw=False,
+                )
+            )
     return tuple(out)
 
 
@@ -229,8 +244,9 @@ def check_records(model: IdentifiedModel, data, measured) -> tuple[list[Trajecto
     must hold those and the model's inputs."""
     records = [data] if isinstance(data, Trajectory) else list(data) if isinstance(data, (list, tuple)) else None
     if not records or not all(isinstance(r, Trajectory) for r in records):
-        raise DataError(expected("data", "a Trajectory or a non-empty list of Trajectories", type(data).__name__,
-                                 raw=True))
+        raise DataError(
+            expected("data", "a Trajectory or a non-empty list of Trajectories", type(data).__name__, raw=True)
+        )
     available = set(records[0].state_names)
     if measured is None:
         measured = tuple(o.name for o in model.observation if o.name in available)
@@ -239,13 +255,22 @@ def check_records(model: IdentifiedModel, data, measured) -> tuple[list[Trajecto
     measured = tuple(measured)
     allowed = set(model.output_names) | set(model.state_names)
     if not measured or any(m not in allowed for m in measured):
-        raise DataError(expected("measured", f"outputs of the model {sorted(allowed)} present in the data",
-                                 list(measured), raw=False))
+        raise DataError(
+            expected(
+                "measured", f"outputs of the model {sorted(allowed)} present in the data", list(measured), raw=False
+            )
+        )
     for k, r in enumerate(records):
         missing = [n for n in list(measured) + list(model.input_names) if n not in r.state_names + r.input_names]
         if missing:
-            raise DataError(expected(f"data[{k}]", f"the measured channels {list(measured)} and the inputs "
-                                     f"{list(model.input_names)}", f"a record without {missing}", raw=True))
+            raise DataError(
+                expected(
+                    f"data[{k}]",
+                    f"the measured channels {list(measured)} and the inputs {list(model.input_names)}",
+                    f"a record without {missing}",
+                    raw=True,
+                )
+            )
         if r.n_samples < 4:
             raise DataError(expected(f"data[{k}]", "a record of at least 4 samples", f"{r.n_samples}", raw=True))
     return records, measured
@@ -275,8 +300,9 @@ def window_plan(lengths, max_samples: int) -> tuple[list[tuple[int, int, int]], 
         width = max(8, share // N_WINDOWS)
         plan += [(k, int(a), int(a) + width) for a in np.linspace(0, n - width, N_WINDOWS).astype(int)]
     used = sum(b - a for _, a, b in plan)
-    return plan, (f"{used} of {total} samples ({len(plan)} windows spread over the record(s); "
-                  f"max_samples={max_samples})")
+    return plan, (
+        f"{used} of {total} samples ({len(plan)} windows spread over the record(s); max_samples={max_samples})"
+    )
 
 
 #: Error of the RK4 simulation accumulated over the system's memory that :func:`choose_substeps` allows,
@@ -284,8 +310,9 @@ def window_plan(lengths, max_samples: int) -> tuple[list[tuple[int, int, int]], 
 SUBSTEP_TOL = 1e-3
 
 
-def choose_substeps(param: Parameterisation, records, guess: np.ndarray, theta: np.ndarray,
-                    extra_rate: float = 0.0) -> int:
+def choose_substeps(
+    param: Parameterisation, records, guess: np.ndarray, theta: np.ndarray, extra_rate: float = 0.0
+) -> int:
     """RK4 steps per sample interval: enough that the simulation's error stays small over the system's memory.
 
     RK4's local error in a mode ``lambda`` is ``(h |lambda|)^5 / 120`` of the state per step; it accumulates
@@ -309,13 +336,23 @@ def choose_substeps(param: Parameterisation, records, guess: np.ndarray, theta: 
     offset = 0
     memory = max(float(r.t[-1] - r.t[0]) for r in records)
     for r in records:
-        G = guess[offset:offset + r.n_samples]
+        G = guess[offset : offset + r.n_samples]
         offset += r.n_samples
-        rows = np.unique(np.concatenate([np.linspace(0, r.n_samples - 1, min(256, r.n_samples)).astype(int),
-                                         np.argmax(G, axis=0), np.argmin(G, axis=0)]))
+        rows = np.unique(
+            np.concatenate(
+                [
+                    np.linspace(0, r.n_samples - 1, min(256, r.n_samples)).astype(int),
+                    np.argmax(G, axis=0),
+                    np.argmin(G, axis=0),
+                ]
+            )
+        )
         X = G[rows]
-        U = (np.column_stack([r.column(n) for n in model.input_names])[rows] if model.inputs
-             else np.zeros((rows.size, 0)))
+        U = (
+            np.column_stack([r.column(n) for n in model.input_names])[rows]
+            if model.inputs
+            else np.zeros((rows.size, 0))
+        )
         J = np.asarray(jac.map(rows.size)(X.T, U.T, np.repeat(theta[:, None], rows.size, 1))).reshape(nx, rows.size, nx)
         ev = np.linalg.eigvals(np.transpose(J, (1, 0, 2))).ravel()  # (samples * nx,)
         ev = ev[np.isfinite(ev) & (np.abs(ev) > 0)]

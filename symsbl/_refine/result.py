@@ -20,8 +20,11 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
     holds the integrator settings (RK4 substeps, input interpolation) it was fitted with, which
     :func:`symsbl.validate_model` re-simulates it with (a Coulomb force of 5 % of the excitation,
     re-simulated with one step per sample instead of the fit's four, strayed 0.35 % from the truth)."""
-    fitted = {"substeps": engine.substeps, "interpolation": engine.settings.interpolation,
-              "noise": noise_record(engine.measured, sol)}
+    fitted = {
+        "substeps": engine.substeps,
+        "interpolation": engine.settings.interpolation,
+        "noise": noise_record(engine.measured, sol),
+    }
     info = dict(info, refine={**fitted, **info.get("refine", {})})
     post, active = sol.posterior, list(sol.active)
     where = {engine.positions[k]: n for n, k in enumerate(active)}
@@ -37,19 +40,44 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
         kept = [j for j in range(len(eq.terms)) if (i, j) in where or eq.terms[j].fixed]
         idx = [where.get((i, j)) for j in kept]
         free_order += [n for n in idx if n is not None]
-        terms = tuple(eq.terms[j] if n is None else
-                      TermEstimate(expr=eq.terms[j].expr, coef=float(post.mean[n]), std=float(std[n]),
-                                   alpha=float(sol.alpha[active[n]]),
-                                   evidence=float(sol.confirmed.get(active[n],
-                                                                    -reduce_model(post, sol.alpha[active], [n])[0])),
-                                   alternatives=eq.terms[j].alternatives) for j, n in zip(kept, idx))
-        equations.append(Equation(eq.lhs, terms, _block(post.covariance, idx), noise.get(eq.lhs, math.nan),
-                                  post.log_evidence, n_samples, runners_up=eq.runners_up, algebraic=eq.algebraic))
+        terms = tuple(
+            eq.terms[j]
+            if n is None
+            else TermEstimate(
+                expr=eq.terms[j].expr,
+                coef=float(post.mean[n]),
+                std=float(std[n]),
+                alpha=float(sol.alpha[active[n]]),
+                evidence=float(sol.confirmed.get(active[n], -reduce_model(post, sol.alpha[active], [n])[0])),
+                alternatives=eq.terms[j].alternatives,
+            )
+            for j, n in zip(kept, idx)
+        )
+        equations.append(
+            Equation(
+                eq.lhs,
+                terms,
+                _block(post.covariance, idx),
+                noise.get(eq.lhs, math.nan),
+                post.log_evidence,
+                n_samples,
+                runners_up=eq.runners_up,
+                algebraic=eq.algebraic,
+            )
+        )
     plain = all(o.kind == "state" for o in engine.outputs) and not engine.model.outputs
-    observed = dict(measured=engine.measured) if plain else dict(
-        measured=tuple(o.state for o in engine.outputs if o.state is not None), outputs=engine.outputs)
-    model = dataclasses.replace(engine.model, equations=tuple(equations), fit=FitMethod.OUTPUT_ERROR,
-                                metadata=dict(engine.model.metadata, **info), **observed)
+    observed = (
+        dict(measured=engine.measured)
+        if plain
+        else dict(measured=tuple(o.state for o in engine.outputs if o.state is not None), outputs=engine.outputs)
+    )
+    model = dataclasses.replace(
+        engine.model,
+        equations=tuple(equations),
+        fit=FitMethod.OUTPUT_ERROR,
+        metadata=dict(engine.model.metadata, **info),
+        **observed,
+    )
     return dataclasses.replace(model, joint_covariance=_joint(model, free_order, post.covariance))
 
 
@@ -64,8 +92,11 @@ def noise_record(measured, sol: Solution) -> dict:
         ar = [] if sol.ar is None else [float(a) for a in sol.ar[c]]
         while ar and ar[-1] == 0.0:
             ar.pop()
-        out[name] = {"model": f"AR({len(ar)})" if ar else "white", "ar": ar,
-                     "innovation_std": float(1.0 / math.sqrt(pooled[c]))}
+        out[name] = {
+            "model": f"AR({len(ar)})" if ar else "white",
+            "ar": ar,
+            "innovation_std": float(1.0 / math.sqrt(pooled[c])),
+        }
         if w.shape[0] > 1:
             out[name]["innovation_std_by_record"] = [float(1.0 / math.sqrt(v)) for v in w[:, c]]
     return out

@@ -35,8 +35,10 @@ def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
 
 def design_rows(model: IdentifiedModel, records, guess: np.ndarray, most: int = 20000) -> np.ndarray:
     """Rows ``(states, inputs)`` of ``guess`` and the records' inputs, evenly thinned to at most ``most``."""
-    U = [np.column_stack([r.column(n) for n in model.input_names]) if model.input_names
-         else np.zeros((r.n_samples, 0)) for r in records]
+    U = [
+        np.column_stack([r.column(n) for n in model.input_names]) if model.input_names else np.zeros((r.n_samples, 0))
+        for r in records
+    ]
     Z = np.column_stack([guess, np.vstack(U)])
     return Z[:: max(1, len(Z) // most)]
 

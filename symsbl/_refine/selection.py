@@ -39,8 +39,9 @@ def backward(post, alpha: np.ndarray, cost_per_term: float, keys, equivalence_na
     n = post.mean.size
     while len(removed) < n - 1:
         base = reduce_model(post, alpha, removed)[0] if removed else 0.0
-        gains = {k: reduce_model(post, alpha, removed + [k])[0] - base + cost_per_term
-                 for k in range(n) if k not in removed}
+        gains = {
+            k: reduce_model(post, alpha, removed + [k])[0] - base + cost_per_term for k in range(n) if k not in removed
+        }
         best = max(gains.values())
         if best <= 0:
             break
@@ -53,8 +54,9 @@ def objective(sol, cost_per_term: float) -> float:
     return sol.posterior.log_evidence - cost_per_term * sol.active.size
 
 
-def select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None = None,
-           rule: SelectionRule = DEFAULT_RULE):
+def select(
+    engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None = None, rule: SelectionRule = DEFAULT_RULE
+):
     """The sub-structure with the best penalised output-error evidence: model reduction from one fit of
     the model extended by its candidates, confirmed by a refit. ``cost_of(fit)`` gives the nats per term
     from the extended fit (whose residual says how much structure no candidate explains). ``twins``
@@ -100,12 +102,18 @@ def _every_term_clears(engine: Engine, best, cost: float):
             refit = engine.fit(chosen, start, best.alpha, warm=best)
         except (SimulationError, np.linalg.LinAlgError):
             refit = None
-        if refit is not None and np.isfinite(refit.posterior.log_evidence) and \
-                objective(refit, cost) >= objective(best, cost):
+        if (
+            refit is not None
+            and np.isfinite(refit.posterior.log_evidence)
+            and objective(refit, cost) >= objective(best, cost)
+        ):
             best, confirmed = refit, {}
         else:
-            confirmed[k] = (best.posterior.log_evidence - refit.posterior.log_evidence) if refit is not None \
-                and np.isfinite(refit.posterior.log_evidence) else np.inf
+            confirmed[k] = (
+                (best.posterior.log_evidence - refit.posterior.log_evidence)
+                if refit is not None and np.isfinite(refit.posterior.log_evidence)
+                else np.inf
+            )
     return dataclasses.replace(best, confirmed=confirmed, penalty=float(cost))
 
 
@@ -119,8 +127,10 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
     drag, which a refit put 1.6 nats higher; on a hardening oscillator it kept ``sin(x)`` for ``x`` (the
     refit 5e-4 nats higher: the same model, since ``x^3`` takes up the difference). One refit per such pair.
     """
-    index = {(engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name): k
-             for k, (i, j) in enumerate(engine.positions)}
+    index = {
+        (engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name): k
+        for k, (i, j) in enumerate(engine.positions)
+    }
     rows = None
     for lhs, pairs in twins.items():
         for alike, term in pairs.items():
@@ -134,8 +144,14 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
             if rows is None:
                 rows = design_rows(engine.model, engine.records, engine.guess)
             with np.errstate(all="ignore"):
-                T = term_values([engine.full.equations[engine.positions[k][0]].terms[engine.positions[k][1]].expr
-                                 for k in (kept, other)], engine.model, rows)
+                T = term_values(
+                    [
+                        engine.full.equations[engine.positions[k][0]].terms[engine.positions[k][1]].expr
+                        for k in (kept, other)
+                    ],
+                    engine.model,
+                    rows,
+                )
             if not np.all(np.isfinite(T)) or not T[:, 1] @ T[:, 1] > 0:
                 continue
             start = best.theta.copy()
@@ -146,8 +162,11 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
                 trial = engine.fit(sorted(active - {kept} | {other}), start, prior)
             except (SimulationError, np.linalg.LinAlgError):
                 continue
-            if (trial.length >= best.length and np.isfinite(trial.posterior.log_evidence)
-                    and trial.posterior.log_evidence >= best.posterior.log_evidence - rule.equivalence_nats):
+            if (
+                trial.length >= best.length
+                and np.isfinite(trial.posterior.log_evidence)
+                and trial.posterior.log_evidence >= best.posterior.log_evidence - rule.equivalence_nats
+            ):
                 best = trial
     return best
 
@@ -182,8 +201,9 @@ def _removals(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, 
     # near-equivalent terms unevenly and would decide between them by that split
     post = reprior(sol.posterior, sol.alpha[sol.active], alpha[sol.active])
     removed = backward(post, alpha[sol.active], cost, keys, rule.equivalence_nats)
-    return _one_of_each_pair(engine, sol.active, post, alpha[sol.active], removed, twins, keys,
-                             rule.equivalence_nats), post
+    return _one_of_each_pair(
+        engine, sol.active, post, alpha[sol.active], removed, twins, keys, rule.equivalence_nats
+    ), post
 
 
 def _reduced(engine: Engine, sol, post, alpha: np.ndarray, removed: list):
@@ -204,8 +224,9 @@ def _reduced(engine: Engine, sol, post, alpha: np.ndarray, removed: list):
 PRUNE_REFITS = 12
 
 
-def _prune(engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, rule: SelectionRule,
-           tried: list | None = None):
+def _prune(
+    engine: Engine, sol, alpha: np.ndarray, cost: float, twins: dict, rule: SelectionRule, tried: list | None = None
+):
     """Backward elimination from the extended fit in confirmed steps, when one reduction of it fell short of
     the extended fit itself: model reduction extrapolates from one posterior, and far from it (many
     candidates removed at once) it can err by thousands of nats (measured: a 2-DOF oscillator recorded by
@@ -271,8 +292,11 @@ def _extended_from_first(engine: Engine, first, every: np.ndarray, alpha: np.nda
         cold = engine.fit(every, first.theta, alpha, longest=int(first.length))
     except SimulationError:
         pass
-    if cold is not None and np.array_equal(cold.starts, first.starts) and (
-            0.5 * np.sum(cold.ssr * first.w) <= 0.5 * np.sum(first.ssr * first.w) + 1.0):
+    if (
+        cold is not None
+        and np.array_equal(cold.starts, first.starts)
+        and (0.5 * np.sum(cold.ssr * first.w) <= 0.5 * np.sum(first.ssr * first.w) + 1.0)
+    ):
         return cold
     try:
         return engine.fit(every, first.theta, alpha, warm=first)
@@ -280,8 +304,16 @@ def _extended_from_first(engine: Engine, first, every: np.ndarray, alpha: np.nda
         return None
 
 
-def _one_of_each_pair(engine: Engine, active: np.ndarray, post, alpha: np.ndarray, removed: list, twins: dict,
-                      keys, equivalence_nats: float):
+def _one_of_each_pair(
+    engine: Engine,
+    active: np.ndarray,
+    post,
+    alpha: np.ndarray,
+    removed: list,
+    twins: dict,
+    keys,
+    equivalence_nats: float,
+):
     """``removed`` extended so that no look-alike stays beside its term: of each such pair, the one whose
     removal lowers the evidence less goes (Bayesian model reduction); within ``equivalence_nats`` of each
     other, the more complex goes (``keys``: parsimony keys), as in :func:`backward`. (A drag oscillator

@@ -59,7 +59,7 @@ def _rk4(param: Parameterisation, x, theta, ud, dt, substeps: int):
     h = dt / substeps
 
     def u_at(node: int):
-        return ud[node * nu:(node + 1) * nu] if nu else ca.SX(0, 1)
+        return ud[node * nu : (node + 1) * nu] if nu else ca.SX(0, 1)
 
     xi = x
     for j in range(substeps):
@@ -73,9 +73,15 @@ def _rk4(param: Parameterisation, x, theta, ud, dt, substeps: int):
 
 def _symbols(param: Parameterisation, substeps: int):
     nx, nu, npar = len(param.model.states), len(param.model.inputs), param.n_free
-    return dict(x=ca.SX.sym("x", nx), theta=ca.SX.sym("theta", npar), ud=ca.SX.sym("ud", nu * (2 * substeps + 1)),
-                dt=ca.SX.sym("dt"), reset=ca.SX.sym("reset"), x_start=ca.SX.sym("x_start", nx),
-                un=ca.SX.sym("un", nu))
+    return dict(
+        x=ca.SX.sym("x", nx),
+        theta=ca.SX.sym("theta", npar),
+        ud=ca.SX.sym("ud", nu * (2 * substeps + 1)),
+        dt=ca.SX.sym("dt"),
+        reset=ca.SX.sym("reset"),
+        x_start=ca.SX.sym("x_start", nx),
+        un=ca.SX.sym("un", nu),
+    )
 
 
 def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps: int) -> tuple[ca.Function, dict]:
@@ -99,14 +105,19 @@ def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps:
     S1 = ca.if_else(reset, ca.SX(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
     xs = ca.SX.sym("xs", nx)
     h = observe(xs, v["un"], v["theta"])
-    output = ca.Function("output", [xs, v["un"], v["theta"]],
-                         [h, ca.jacobian(h, xs), ca.jacobian(h, v["theta"])])
+    output = ca.Function("output", [xs, v["un"], v["theta"]], [h, ca.jacobian(h, xs), ca.jacobian(h, v["theta"])])
     h1, hx, ht = output(x1, v["un"], v["theta"])
     Jh = hx @ S1 + ca.horzcat(ht, ca.SX.zeros(ny, nx))
     z = ca.vertcat(v["x"], ca.vec(S))
     names = ["z", "ud", "dt", "theta", "reset", "x_start", "un"]
-    f = ca.Function("sensitivity_step", [z, *(v[n] for n in names[1:])],
-                    [ca.vertcat(x1, ca.vec(S1)), h1, ca.vec(Jh)], names, ["z_next", "h", "Jh"], {"cse": True})
+    f = ca.Function(
+        "sensitivity_step",
+        [z, *(v[n] for n in names[1:])],
+        [ca.vertcat(x1, ca.vec(S1)), h1, ca.vec(Jh)],
+        names,
+        ["z_next", "h", "Jh"],
+        {"cse": True},
+    )
     return f, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
@@ -115,8 +126,14 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
     v = _symbols(param, substeps)
     x_next = _rk4(param, v["x"], v["theta"], v["ud"], v["dt"], substeps)
     out = ca.if_else(v["reset"] > 0.5, v["x_start"], x_next)
-    return ca.Function("state_step", [v["x"], v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"]], [out],
-                       ["x", "ud", "dt", "theta", "reset", "x_start"], ["x_next"], {"cse": True})
+    return ca.Function(
+        "state_step",
+        [v["x"], v["ud"], v["dt"], v["theta"], v["reset"], v["x_start"]],
+        [out],
+        ["x", "ud", "dt", "theta", "reset", "x_start"],
+        ["x_next"],
+        {"cse": True},
+    )
 
 
 def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Function:
@@ -127,8 +144,12 @@ def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Fun
     if cached is not None:
         return cached
     acc = step.mapaccum("steps", chunk)
-    args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) if i in (0, 3)
-            else ca.MX.sym(step.name_in(i), step.size1_in(i), chunk) for i in range(step.n_in())]
+    args = [
+        ca.MX.sym(step.name_in(i), step.sparsity_in(i))
+        if i in (0, 3)
+        else ca.MX.sym(step.name_in(i), step.size1_in(i), chunk)
+        for i in range(step.n_in())
+    ]
     call = [args[0], args[1], args[2], ca.repmat(args[3], 1, chunk), *args[4:]]
     res = acc(*call)
     outs = list(res) if isinstance(res, (list, tuple)) else [res]
@@ -215,11 +236,17 @@ class Blocks:
 
     def where(self, mask: np.ndarray, other: Blocks) -> Blocks:
         """The blocks of ``other`` for the segments in ``mask``, these elsewhere."""
+
         def pick(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             return np.where(mask.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
 
-        return Blocks(pick(self.H, other.H), pick(self.g, other.g), pick(self.rr, other.rr),
-                      pick(self.end_S, other.end_S), pick(self.n_kept, other.n_kept))
+        return Blocks(
+            pick(self.H, other.H),
+            pick(self.g, other.g),
+            pick(self.rr, other.rr),
+            pick(self.end_S, other.end_S),
+            pick(self.n_kept, other.n_kept),
+        )
 
 
 class Passes:
@@ -231,8 +258,7 @@ class Passes:
 
     def __init__(self, param: Parameterisation, records: Records, jit="auto"):
         self.param, self.records = param, records
-        step, self.layout = sensitivity_step(param, param.observe(records.outputs), records.n_outputs,
-                                             records.substeps)
+        step, self.layout = sensitivity_step(param, param.observe(records.outputs), records.n_outputs, records.substeps)
         lay = self.layout
         # divides CHUNK, the padding and the plain simulation's calls
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
@@ -274,11 +300,15 @@ class Passes:
         ends = np.append(starts[1:], n) - 1
         rows = np.arange(n)
         since = rows - starts[np.searchsorted(starts, rows, side="right") - 1]
-        return Segments(starts=starts, piece_starts=pieces,
-                        piece_segment=np.searchsorted(starts, pieces, side="right") - 1,
-                        chunk_pieces=np.searchsorted(pieces, np.arange(0, self.n_pad + 1, C)),
-                        ends=ends, since=since,
-                        record_of_segment=np.searchsorted(self.records.starts, starts, side="right") - 1)
+        return Segments(
+            starts=starts,
+            piece_starts=pieces,
+            piece_segment=np.searchsorted(starts, pieces, side="right") - 1,
+            chunk_pieces=np.searchsorted(pieces, np.arange(0, self.n_pad + 1, C)),
+            ends=ends,
+            since=since,
+            record_of_segment=np.searchsorted(self.records.starts, starts, side="right") - 1,
+        )
 
     def _load(self, seg: Segments, X0: np.ndarray) -> None:
         """Fill the scratch arrays the compiled calls read: reset flags and initial states."""
@@ -287,8 +317,9 @@ class Passes:
         self._x_start[seg.starts] = X0
 
     # -- passes --------------------------------------------------------------------------------
-    def sensitivities(self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray,
-                      ar: np.ndarray | None = None) -> Blocks:
+    def sensitivities(
+        self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray, ar: np.ndarray | None = None
+    ) -> Blocks:
         """The Gauss-Newton blocks of every segment of ``seg``.
 
         Parameters
@@ -345,27 +376,27 @@ class Passes:
         for c, a in enumerate(range(0, self.n_pad, C)):
             buf.set_arg(0, _view(z0))
             for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.UN)):
-                buf.set_arg(i, _view(arr[a:a + C]))
+                buf.set_arg(i, _view(arr[a : a + C]))
             call()
             z0[:] = zout[-1]
             n = min(C, self.records.n_total - a)
             if n <= 0:
                 break
-            R = self.Y[a:a + n] - hout[:n]                                   # (n, ny)
-            residual[a:a + n] = np.where(self.valid[a:a + n], R, np.nan)
-            J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)               # (n, ny, ns)
-            E, EJ, keep = R, J, self.valid[a:a + n]
+            R = self.Y[a : a + n] - hout[:n]  # (n, ny)
+            residual[a : a + n] = np.where(self.valid[a : a + n], R, np.nan)
+            J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)  # (n, ny, ns)
+            E, EJ, keep = R, J, self.valid[a : a + n]
             if order:
                 R_ext = np.concatenate([lag_r, R])
                 J_ext = np.concatenate([lag_j, J])
                 E = R.copy()
                 EJ = J.copy()
                 for i in range(1, order + 1):
-                    E += ar[:, i - 1] * R_ext[order - i:order - i + n]
-                    EJ += ar[:, i - 1][None, :, None] * J_ext[order - i:order - i + n]
-                keep = keep & (seg.since[a:a + n, None] >= order) & (self.valid_runs[a:a + n] > order)
+                    E += ar[:, i - 1] * R_ext[order - i : order - i + n]
+                    EJ += ar[:, i - 1][None, :, None] * J_ext[order - i : order - i + n]
+                keep = keep & (seg.since[a : a + n, None] >= order) & (self.valid_runs[a : a + n] > order)
                 lag_r, lag_j = R_ext[-order:], J_ext[-order:]
-            weight = sw[self.row_record[a:a + n]] * keep                    # (n, ny)
+            weight = sw[self.row_record[a : a + n]] * keep  # (n, ny)
             E = E * weight
             EJ = EJ * weight[:, :, None]
             p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
@@ -406,7 +437,9 @@ class Passes:
         Xp = np.vstack([X, np.zeros((self.n_pad - n, X.shape[1]))])
         with np.errstate(all="ignore"):
             for a in range(0, self.n_pad, CHUNK):
-                out[a:a + CHUNK] = np.asarray(self._output_map(Xp[a:a + CHUNK].T, self.UN[a:a + CHUNK].T, theta)).T
+                out[a : a + CHUNK] = np.asarray(
+                    self._output_map(Xp[a : a + CHUNK].T, self.UN[a : a + CHUNK].T, theta)
+                ).T
         return out[:n]
 
     def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
@@ -423,11 +456,11 @@ class Passes:
         for a in range(0, self.n_pad, C):
             buf.set_arg(0, _view(x0))  # type: ignore[call-arg]
             for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start)):
-                buf.set_arg(i, _view(arr[a:a + C]))  # type: ignore[call-arg]
-            buf.set_res(0, _view(out[a:a + C]))  # type: ignore[call-arg]
+                buf.set_arg(i, _view(arr[a : a + C]))  # type: ignore[call-arg]
+            buf.set_res(0, _view(out[a : a + C]))  # type: ignore[call-arg]
             call()
             x0 = out[a + C - 1].copy()
-        return out[:self.records.n_total]
+        return out[: self.records.n_total]
 
 
 def _view(a: np.ndarray) -> memoryview:
@@ -460,9 +493,9 @@ def _accumulate(H, g, rr, piece_starts, piece_segment, n: int, E: np.ndarray, EJ
     np.add.at(rr, piece_segment, rr_chunk)
     if len(piece_starts) == 1 or lengths.max() * len(piece_starts) * ns * ns * ny > _PRODUCT:
         for p0, length, k in zip(piece_starts, lengths, piece_segment):
-            A: np.ndarray = EJ[p0:p0 + length].reshape(-1, ns)
+            A: np.ndarray = EJ[p0 : p0 + length].reshape(-1, ns)
             H[k] += A.T @ A
-            g[k] += A.T @ E[p0:p0 + length].reshape(-1)
+            g[k] += A.T @ E[p0 : p0 + length].reshape(-1)
         return
     # many short pieces: pad them to one length and multiply them in one batched product
     L = int(lengths.max())

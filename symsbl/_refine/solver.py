@@ -25,8 +25,7 @@ from .laplace import Posterior, mackay_fixed_point, posterior
 from .noise import NoiseModel, choose_order, fit_ar
 from .sensitivity import Blocks, Passes, Segments
 
-__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "pooled", "initial_states", "horizon",
-           "PHI_STOP"]
+__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "pooled", "initial_states", "horizon", "PHI_STOP"]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -121,8 +120,12 @@ def noise_precisions(Y: np.ndarray, valid: np.ndarray, starts=None) -> np.ndarra
     deviation), ``(n_records, n_channels)``; ``starts`` are the records' first rows (default: one record)."""
     starts = [0] if starts is None else [int(a) for a in starts]
     stops = starts[1:] + [len(Y)]
-    return np.array([[1.0 / max(third_difference_std(Y[a:b][valid[a:b, c], c]) ** 2, 1e-300)
-                      for c in range(Y.shape[1])] for a, b in zip(starts, stops)])
+    return np.array(
+        [
+            [1.0 / max(third_difference_std(Y[a:b][valid[a:b, c], c]) ** 2, 1e-300) for c in range(Y.shape[1])]
+            for a, b in zip(starts, stops)
+        ]
+    )
 
 
 def pooled(w: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
@@ -195,8 +198,9 @@ def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
-def lm(passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = 60,
-       damping: Damping = Damping()) -> tuple[Iterate, int]:
+def lm(
+    passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = 60, damping: Damping = Damping()
+) -> tuple[Iterate, int]:
     """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed noise
     precisions and segments; returns the iterate reached (with its pass) and the number of passes made."""
     it, n_pass = it.evaluated(passes)
@@ -234,8 +238,9 @@ def lm(passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int 
 
 
 @np.errstate(over="ignore", invalid="ignore")
-def initial_states(passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3
-                   ) -> tuple[Iterate, int]:
+def initial_states(
+    passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3
+) -> tuple[Iterate, int]:
     """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
     segment whose step does not lower its cost tries a quarter of it next. At most ``sweeps`` sweeps, fewer
     once every segment's step was accepted and they gained less than ``tol`` nats or ``rtol`` of the cost
@@ -288,7 +293,7 @@ def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
         it, _ = replace(it, blocks=None).evaluated(passes)
     R, since = it.made.residual, it.seg.since
     assert R is not None  # the blocks of a single pass carry its residual
-    run = passes.valid_runs[:R.shape[0]]
+    run = passes.valid_runs[: R.shape[0]]
     ny = R.shape[1]
     orders = [choose_order(R[:, c], since, run[:, c]) if order == "auto" else int(order) for c in range(ny)]
     p = max(orders, default=0)
@@ -415,17 +420,28 @@ def _lengthen(passes: Passes, it: Iterate, length: int, phi: float, growth: int,
 
 def _reuse(it: Iterate, trial: Iterate | None) -> Iterate:
     """``it`` with the pass of a refused ``trial`` when the segments and initial states are the same."""
-    if trial is not None and np.array_equal(it.seg.starts, trial.seg.starts) and np.array_equal(it.X0, trial.X0) \
-            and np.array_equal(it.theta, trial.theta) and np.array_equal(it.w, trial.w):
+    if (
+        trial is not None
+        and np.array_equal(it.seg.starts, trial.seg.starts)
+        and np.array_equal(it.X0, trial.X0)
+        and np.array_equal(it.theta, trial.theta)
+        and np.array_equal(it.w, trial.w)
+    ):
         return replace(it, blocks=trial.blocks)
     return it
 
 
 def _require_finite(theta, H) -> None:
     if not (np.all(np.isfinite(theta)) and np.all(np.isfinite(H))):
-        raise SimulationError(expected("output-error refinement", "a simulation that stays finite",
-                                       "non-finite states or sensitivities (the model diverges on this record)",
-                                       "the equation-error model stands", raw=True))
+        raise SimulationError(
+            expected(
+                "output-error refinement",
+                "a simulation that stays finite",
+                "non-finite states or sensitivities (the model diverges on this record)",
+                "the equation-error model stands",
+                raw=True,
+            )
+        )
 
 
 def _prior_precisions(H, theta, alpha, active):
@@ -442,8 +458,19 @@ def _stage(length: int, it: Iterate, n: int, phi: float, **extra) -> dict:
     return dict(length=length, segments=len(it.seg), passes=n, growth=phi, cost=it.made.cost, **extra)
 
 
-def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int, full: int, growth: int,
-                  tol: float, update_noise: bool, noise="white"):
+def _continuation(
+    passes: Passes,
+    it: Iterate,
+    alpha,
+    active,
+    guess,
+    length: int,
+    full: int,
+    growth: int,
+    tol: float,
+    update_noise: bool,
+    noise="white",
+):
     """The stages of :func:`fit` from segments of ``length`` samples: ``iterate, length, stages, passes``.
 
     Each stage fits at its segment length; then the whole records are tried (:func:`_jump`) until once
@@ -491,9 +518,23 @@ def _continuation(passes: Passes, it: Iterate, alpha, active, guess, length: int
     return it, length, stages, n_pass
 
 
-def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 256, growth: int = 8, w=None,
-        update_noise: bool = True, mackay: bool = True, tol: float = 1e-4, warm: Solution | None = None,
-        longest: int | None = None, noise="white") -> Solution:
+def fit(
+    passes: Passes,
+    theta0,
+    alpha0,
+    guess,
+    *,
+    active=None,
+    length0: int = 256,
+    growth: int = 8,
+    w=None,
+    update_noise: bool = True,
+    mackay: bool = True,
+    tol: float = 1e-4,
+    warm: Solution | None = None,
+    longest: int | None = None,
+    noise="white",
+) -> Solution:
     """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
 
     Parameters
@@ -527,8 +568,11 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
     n_total = passes.records.n_total
-    w = (noise_precisions(passes.Y[:n_total], passes.valid[:n_total], passes.records.starts) if w is None
-         else np.array(passes.per_record(w)))
+    w = (
+        noise_precisions(passes.Y[:n_total], passes.valid[:n_total], passes.records.starts)
+        if w is None
+        else np.array(passes.per_record(w))
+    )
     full = int(passes.records.lengths.max())
     full = full if longest is None else min(int(longest), full)
     length = min(length0, full)
@@ -538,8 +582,9 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
     else:
         starts = passes.segment_starts(length)
         it, n_pass = initial_states(passes, Iterate(theta, guess[starts].copy(), passes.segments(starts), w))
-    it, length, stages, n = _continuation(passes, it, alpha, active, guess, length, full, growth, tol, update_noise,
-                                          noise)
+    it, length, stages, n = _continuation(
+        passes, it, alpha, active, guess, length, full, growth, tol, update_noise, noise
+    )
     n_pass += n
     if noise == "auto" and length < full and update_noise:  # the continuation stopped short: choose it here
         it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto")
@@ -561,7 +606,21 @@ def fit(passes: Passes, theta0, alpha0, guess, *, active=None, length0: int = 25
         # the noise model's own Occam factor: 1/2 log n a coefficient (BIC), as its order was chosen
         occam = 0.5 * float(np.sum(np.count_nonzero(it.ar, axis=1) * np.log(np.maximum(n_kept, 2))))
         post = replace(post, log_evidence=post.log_evidence - occam)
-    return Solution(theta=it.theta, X0=it.X0, starts=it.seg.starts.copy(), length=length, cost=float(cost),
-                    ssr=passes.segment_rows(it.made.rr, it.seg) / w, w=w, alpha=alpha, posterior=post, H=it.made.H,
-                    stages=stages, n_pass=n_pass, active=active, ar=it.ar, n_kept=n_kept,
-                    n_kept_by_record=by_record)
+    return Solution(
+        theta=it.theta,
+        X0=it.X0,
+        starts=it.seg.starts.copy(),
+        length=length,
+        cost=float(cost),
+        ssr=passes.segment_rows(it.made.rr, it.seg) / w,
+        w=w,
+        alpha=alpha,
+        posterior=post,
+        H=it.made.H,
+        stages=stages,
+        n_pass=n_pass,
+        active=active,
+        ar=it.ar,
+        n_kept=n_kept,
+        n_kept_by_record=by_record,
+    )

@@ -13,8 +13,13 @@ __all__ = ["free_positions", "with_terms", "without_terms"]
 
 def free_positions(model: IdentifiedModel) -> list[tuple[int, int]]:
     """``(equation, term)`` of every free coefficient, in the order of the fit's ``theta``."""
-    return [(i, j) for i, eq in enumerate(model.equations) if not eq.fixed
-            for j, term in enumerate(eq.terms) if not term.fixed]
+    return [
+        (i, j)
+        for i, eq in enumerate(model.equations)
+        if not eq.fixed
+        for j, term in enumerate(eq.terms)
+        if not term.fixed
+    ]
 
 
 def without_terms(model: IdentifiedModel, positions) -> IdentifiedModel:
@@ -26,8 +31,11 @@ def without_terms(model: IdentifiedModel, positions) -> IdentifiedModel:
         if len(keep) == len(eq.terms):
             equations.append(eq)
             continue
-        equations.append(dataclasses.replace(eq, terms=tuple(eq.terms[j] for j in keep),
-                                             covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)]))
+        equations.append(
+            dataclasses.replace(
+                eq, terms=tuple(eq.terms[j] for j in keep), covariance=np.asarray(eq.covariance)[np.ix_(keep, keep)]
+            )
+        )
     return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)
 
 
@@ -42,7 +50,17 @@ def with_terms(model: IdentifiedModel, additions: dict) -> IdentifiedModel:
         terms = eq.terms + tuple(TermEstimate(expr=e, coef=c, std=np.nan) for e, c in extra)
         n = len(terms)
         cov = np.zeros((n, n))
-        cov[:len(eq.terms), :len(eq.terms)] = eq.covariance
-        equations.append(Equation(eq.lhs, terms, cov, eq.noise_var, eq.log_evidence, eq.n_rows,
-                                  runners_up=eq.runners_up, algebraic=eq.algebraic))
+        cov[: len(eq.terms), : len(eq.terms)] = eq.covariance
+        equations.append(
+            Equation(
+                eq.lhs,
+                terms,
+                cov,
+                eq.noise_var,
+                eq.log_evidence,
+                eq.n_rows,
+                runners_up=eq.runners_up,
+                algebraic=eq.algebraic,
+            )
+        )
     return dataclasses.replace(model, equations=tuple(equations), joint_covariance=None)

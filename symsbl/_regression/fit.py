@@ -27,8 +27,14 @@ from .support import fit_rvm, search_support
 __all__ = ["fit_stats", "selection_rule"]
 
 
-def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_nats: float | None = None,
-              kinematics=(), selection: SelectionRule | None = None) -> IdentifiedModel:
+def fit_stats(
+    problem: RegressionStats,
+    *,
+    rvm: RVM | None = None,
+    equivalence_nats: float | None = None,
+    kinematics=(),
+    selection: SelectionRule | None = None,
+) -> IdentifiedModel:
     """Fit one sparse equation per state from accumulated regression statistics.
 
     This is the second half of :func:`identify`, for statistics built elsewhere (streamed
@@ -56,8 +62,9 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
     ['x1', 'x2', 'x1**3', 'F']
     """
     if not isinstance(problem, RegressionStats):
-        raise ParameterError(expected("problem", "a RegressionStats (from symsbl.regression_stats)",
-                                      type(problem).__name__, raw=True))
+        raise ParameterError(
+            expected("problem", "a RegressionStats (from symsbl.regression_stats)", type(problem).__name__, raw=True)
+        )
     rule = selection_rule(selection, rvm, equivalence_nats)
     equivalence_nats = rule.equivalence_nats
     template = RVM(**dict((RVM() if rvm is None else rvm).get_params(), prune_nats=rule.penalty))
@@ -75,8 +82,11 @@ def fit_stats(problem: RegressionStats, *, rvm: RVM | None = None, equivalence_n
             if lhs in velocity_of:
                 equations.append(Equation.kinematic(lhs, symbol[velocity_of[lhs]]))
             else:
-                equations.append(_fit_equation(library, stats, k, lhs, template, keys, equivalence_nats,
-                                               algebraic=lhs in problem.output_names))
+                equations.append(
+                    _fit_equation(
+                        library, stats, k, lhs, template, keys, equivalence_nats, algebraic=lhs in problem.output_names
+                    )
+                )
             bar.update()
     return IdentifiedModel(
         states=states,
@@ -97,9 +107,11 @@ def _outputs(problem: RegressionStats) -> tuple:
     the measured derivatives as accelerations and the algebraic outputs."""
     if not problem.output_names and not problem.derivatives:
         return ()
-    return (state_outputs([n for n in problem.state_names if n not in dict(problem.derivatives)])
-            + tuple(AccelerationOutput(column, state) for state, column in problem.derivatives)
-            + tuple(AlgebraicOutput(n) for n in problem.output_names))
+    return (
+        state_outputs([n for n in problem.state_names if n not in dict(problem.derivatives)])
+        + tuple(AccelerationOutput(column, state) for state, column in problem.derivatives)
+        + tuple(AlgebraicOutput(n) for n in problem.output_names)
+    )
 
 
 def selection_rule(selection: SelectionRule | None, rvm: RVM | None, equivalence_nats: float | None) -> SelectionRule:
@@ -114,36 +126,65 @@ def selection_rule(selection: SelectionRule | None, rvm: RVM | None, equivalence
     if rvm is not None and rvm.prune_nats != RVM().prune_nats:
         penalty = 0.0 if rvm.prune_nats is None else rvm.prune_nats
         if selection is not None and selection.penalty != penalty:
-            raise ParameterError(expected("rvm.prune_nats", "the penalty per term given once", "both "
-                                          f"rvm=RVM(prune_nats={rvm.prune_nats!r}) and selection=SelectionRule("
-                                          f"penalty={selection.penalty!r})", "set it in the SelectionRule only",
-                                          raw=True))
+            raise ParameterError(
+                expected(
+                    "rvm.prune_nats",
+                    "the penalty per term given once",
+                    "both "
+                    f"rvm=RVM(prune_nats={rvm.prune_nats!r}) and selection=SelectionRule("
+                    f"penalty={selection.penalty!r})",
+                    "set it in the SelectionRule only",
+                    raw=True,
+                )
+            )
         rule = dataclasses.replace(rule, penalty=penalty).check()
     if equivalence_nats is not None:
         equivalence_nats = number("equivalence_nats", equivalence_nats, low=0.0)
         if selection is not None and selection.equivalence_nats != equivalence_nats:
-            raise ParameterError(expected("equivalence_nats", "the parsimony margin given once", "both "
-                                          f"equivalence_nats={equivalence_nats:g} and selection=SelectionRule("
-                                          f"equivalence_nats={selection.equivalence_nats:g})",
-                                          "set it in the SelectionRule only", raw=True))
+            raise ParameterError(
+                expected(
+                    "equivalence_nats",
+                    "the parsimony margin given once",
+                    "both "
+                    f"equivalence_nats={equivalence_nats:g} and selection=SelectionRule("
+                    f"equivalence_nats={selection.equivalence_nats:g})",
+                    "set it in the SelectionRule only",
+                    raw=True,
+                )
+            )
         rule = dataclasses.replace(rule, equivalence_nats=equivalence_nats)
     return rule
 
 
-def _fit_equation(library: Library, stats, k, lhs, template, keys, equivalence_nats,
-                  algebraic: bool = False) -> Equation:
+def _fit_equation(
+    library: Library, stats, k, lhs, template, keys, equivalence_nats, algebraic: bool = False
+) -> Equation:
     """The sparse equation of target ``k`` (a state's derivative or an algebraic output): RVM, support search,
     parsimony."""
     first = fit_rvm(template, stats, k)
     if len(first.active_) == 0:
-        return Equation(lhs, (), np.zeros((0, 0)), float(first.noise_var_), float(first.log_evidence_),
-                        int(stats.n_samples), algebraic=algebraic)
+        return Equation(
+            lhs,
+            (),
+            np.zeros((0, 0)),
+            float(first.noise_var_),
+            float(first.log_evidence_),
+            int(stats.n_samples),
+            algebraic=algebraic,
+        )
     active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
     _, kept, final = search.score(active)
     names = {col: tuple(library.terms[i].name for i in alternatives.get(col, ())) for col in kept}
     runners = [library.terms[c].name for c in search.runners_up(kept, final)]
-    return Equation.from_fit(lhs, [library.terms[c].expr for c in kept], final, int(stats.n_samples),
-                             alternatives=[names[c] for c in kept], runners_up=runners, algebraic=algebraic)
+    return Equation.from_fit(
+        lhs,
+        [library.terms[c].expr for c in kept],
+        final,
+        int(stats.n_samples),
+        alternatives=[names[c] for c in kept],
+        runners_up=runners,
+        algebraic=algebraic,
+    )
 
 
 def _symbol(name: str):

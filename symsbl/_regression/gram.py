@@ -24,8 +24,15 @@ __all__ = ["GramStats", "check_target"]
 def _as_matrix(value, name, *, ndim_ok=(2,), check_finite=True):
     arr = np.asarray(value, dtype=float)
     if arr.ndim not in ndim_ok:
-        raise DataError(expected(name, f"a {' or '.join(f'{d}-D' for d in ndim_ok)} array", f"shape {arr.shape}",
-                                 f"reshape it (e.g. {name}.reshape(-1, 1) for one column)", raw=True))
+        raise DataError(
+            expected(
+                name,
+                f"a {' or '.join(f'{d}-D' for d in ndim_ok)} array",
+                f"shape {arr.shape}",
+                f"reshape it (e.g. {name}.reshape(-1, 1) for one column)",
+                raw=True,
+            )
+        )
     if check_finite:
         _require_finite(arr, name)
     return arr
@@ -34,8 +41,15 @@ def _as_matrix(value, name, *, ndim_ok=(2,), check_finite=True):
 def _require_finite(arr, name):
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
-        raise DataError(expected(name, "finite values", f"a non-finite value at index {tuple(int(i) for i in bad)}",
-                                 "remove or impute NaN/inf rows first", raw=True))
+        raise DataError(
+            expected(
+                name,
+                "finite values",
+                f"a non-finite value at index {tuple(int(i) for i in bad)}",
+                "remove or impute NaN/inf rows first",
+                raw=True,
+            )
+        )
 
 
 def _check_pair(D, Y, names=("D", "Y")):
@@ -142,14 +156,19 @@ class GramStats:
         if not isinstance(other, GramStats):
             return NotImplemented
         if self.gram.shape != other.gram.shape or self.dty.shape != other.dty.shape:
-            raise DataError(expected("other", f"GramStats of {self.dty.shape} (n_terms, n_targets)",
-                                     f"{other.dty.shape}", raw=True))
+            raise DataError(
+                expected("other", f"GramStats of {self.dty.shape} (n_terms, n_targets)", f"{other.dty.shape}", raw=True)
+            )
         r_factor = None
         if self.r_factor is not None and other.r_factor is not None:
             r_factor = _tsqr(self.r_factor, other.r_factor)
         return GramStats(
-            self.gram + other.gram, self.dty + other.dty, self.yty + other.yty,
-            self.y_sum + other.y_sum, self.n_samples + other.n_samples, r_factor,
+            self.gram + other.gram,
+            self.dty + other.dty,
+            self.yty + other.yty,
+            self.y_sum + other.y_sum,
+            self.n_samples + other.n_samples,
+            r_factor,
         )
 
     def scaled(self, factor: float) -> GramStats:
@@ -157,8 +176,12 @@ class GramStats:
         factor = number("factor", factor, low=0.0, strict=True)
         r_factor = None if self.r_factor is None else np.sqrt(factor) * self.r_factor
         return GramStats(
-            factor * self.gram, factor * self.dty, factor * self.yty, factor * self.y_sum,
-            factor * self.n_samples, r_factor,
+            factor * self.gram,
+            factor * self.dty,
+            factor * self.yty,
+            factor * self.y_sum,
+            factor * self.n_samples,
+            r_factor,
         )
 
     def target(self, k: int) -> GramStats:
@@ -168,21 +191,27 @@ class GramStats:
         if self.r_factor is not None:
             keep = list(range(self.n_terms)) + [self.n_terms + k]
             r_factor = self.r_factor[:, keep]
-        return GramStats(
-            self.gram, self.dty[:, [k]], self.yty[[k]], self.y_sum[[k]], self.n_samples, r_factor
-        )
+        return GramStats(self.gram, self.dty[:, [k]], self.yty[[k]], self.y_sum[[k]], self.n_samples, r_factor)
 
 
 def _check_squares(D, Y, d2, yty, names):
     """Refuse non-finite data, found through the sums of squares (so valid data is scanned once)."""
     if not np.all(np.isfinite(d2)):
         _require_finite(D, names[0])
-        raise DataError(expected(names[0], "values whose squares are finite", "values too large to square",
-                                 "rescale its columns", raw=True))
+        raise DataError(
+            expected(
+                names[0],
+                "values whose squares are finite",
+                "values too large to square",
+                "rescale its columns",
+                raw=True,
+            )
+        )
     if not np.all(np.isfinite(yty)):
         _require_finite(Y, names[1])
-        raise DataError(expected(names[1], "values whose squares are finite", "values too large to square",
-                                 "rescale it", raw=True))
+        raise DataError(
+            expected(names[1], "values whose squares are finite", "values too large to square", "rescale it", raw=True)
+        )
 
 
 def _products(D, Y):
@@ -205,9 +234,9 @@ def _products(D, Y):
     gram, dty = np.zeros((M, M)), np.zeros((M, Y.shape[1]))
     part_g, part_y = np.empty((M, M)), np.empty((M, Y.shape[1]))
     for start in range(0, n, step):
-        block = D[start:start + step] if direct else np.ascontiguousarray(D[start:start + step])
+        block = D[start : start + step] if direct else np.ascontiguousarray(D[start : start + step])
         np.matmul(block.T, block, out=part_g)
-        np.matmul(block.T, Y[start:start + step], out=part_y)
+        np.matmul(block.T, Y[start : start + step], out=part_y)
         gram += part_g
         dty += part_y
     return gram, dty

@@ -67,9 +67,14 @@ def noise_floor(clean: GramStats, again: GramStats, cols: list[int], target: int
     return float(np.sqrt(extra / clean.yty[target])) if clean.yty[target] > 0 else 0.0
 
 
-def validated_equations(model: IdentifiedModel, problem: RegressionStats, folds: list[GramStats],
-                        template: RVM, rule: SelectionRule, again: GramStats | None = None
-                        ) -> tuple[IdentifiedModel, ModelPath]:
+def validated_equations(
+    model: IdentifiedModel,
+    problem: RegressionStats,
+    folds: list[GramStats],
+    template: RVM,
+    rule: SelectionRule,
+    again: GramStats | None = None,
+) -> tuple[IdentifiedModel, ModelPath]:
     """``model`` (the equation error's) with each equation's structure chosen from its backward-elimination path
     by cross-validation over ``folds`` (statistics of contiguous stretches of the records), and the path.
     ``again``: the statistics of the records with their noise added once more, which set each equation's noise
@@ -95,20 +100,39 @@ def validated_equations(model: IdentifiedModel, problem: RegressionStats, folds:
         objectives = [float(f.log_evidence_) - cost * n for (_, f, _), n in zip(path, sizes)]
         E = np.array([e for _, _, e in path])
         full_cols, full_fit, _ = path[0]
-        floor = 0.0 if again is None else noise_floor(problem.stats, again, full_cols, target,
-                                                       full_fit.coef_[np.arange(len(full_cols))])
+        floor = (
+            0.0
+            if again is None
+            else noise_floor(problem.stats, again, full_cols, target, full_fit.coef_[np.arange(len(full_cols))])
+        )
         chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
         reasons.append(reason)
         best = int(np.argmin(mean_errors(E)))
         for k, (c, f, e) in enumerate(path):
-            entries.append(PathEntry(((eq.lhs, tuple(names[i] for i in c)),), sizes[k], float(f.log_evidence_),
-                                     objectives[k], float(np.mean(e)), paired_se(e, E[best]),
-                                     "equation error" if k == 0 else "path", k == chosen))
+            entries.append(
+                PathEntry(
+                    ((eq.lhs, tuple(names[i] for i in c)),),
+                    sizes[k],
+                    float(f.log_evidence_),
+                    objectives[k],
+                    float(np.mean(e)),
+                    paired_se(e, E[best]),
+                    "equation error" if k == 0 else "path",
+                    k == chosen,
+                )
+            )
         c, fit, _ = path[chosen]
         by_name = {t.name: t for t in eq.terms}
-        equations.append(Equation.from_fit(eq.lhs, [problem.library.terms[i].expr for i in c], fit,
-                                           int(n_obs), alternatives=[by_name[names[i]].alternatives for i in c],
-                                           runners_up=eq.runners_up))
+        equations.append(
+            Equation.from_fit(
+                eq.lhs,
+                [problem.library.terms[i].expr for i in c],
+                fit,
+                int(n_obs),
+                alternatives=[by_name[names[i]].alternatives for i in c],
+                runners_up=eq.runners_up,
+            )
+        )
     entries.sort(key=lambda e: (e.terms[0][0], e.n_terms))
     chosen_path = ModelPath(tuple(entries), reasons[0] if reasons else "")
     return dataclasses.replace(model, equations=tuple(equations)), chosen_path

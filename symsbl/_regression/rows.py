@@ -31,8 +31,14 @@ from .._symbolic.library import Library
 from .gram import GramStats
 
 __all__ = [
-    "RegressionStats", "regression_stats", "block_stats", "as_trajectories", "library_columns",
-    "check_variation", "check_inputs_vary", "check_representable",
+    "RegressionStats",
+    "regression_stats",
+    "block_stats",
+    "as_trajectories",
+    "library_columns",
+    "check_variation",
+    "check_inputs_vary",
+    "check_representable",
 ]
 
 
@@ -85,8 +91,15 @@ def as_trajectories(data) -> list[Trajectory]:
             got = "; ".join(f"states={s}, inputs={i}" for s, i in sorted(names))
             raise DataError(expected("data", "trajectories with the same state and input names", got, raw=True))
         return list(data)
-    raise DataError(expected("data", "a Trajectory or a non-empty list of Trajectories", type(data).__name__,
-                             "read files with symsbl.read_trajectory", raw=True))
+    raise DataError(
+        expected(
+            "data",
+            "a Trajectory or a non-empty list of Trajectories",
+            type(data).__name__,
+            "read files with symsbl.read_trajectory",
+            raw=True,
+        )
+    )
 
 
 def library_columns(state_names: Sequence[str], input_names: Sequence[str], library: Library) -> list[int]:
@@ -94,10 +107,15 @@ def library_columns(state_names: Sequence[str], input_names: Sequence[str], libr
     available = list(state_names) + list(input_names)
     missing = [n for n in library.variable_names if n not in available]
     if missing:
-        raise LibraryError(expected(
-            "library", f"variables named like the data's states {list(state_names)} and inputs {list(input_names)}",
-            f"a library that also uses {missing}", "declare the library with symbols named like the columns",
-            raw=True))
+        raise LibraryError(
+            expected(
+                "library",
+                f"variables named like the data's states {list(state_names)} and inputs {list(input_names)}",
+                f"a library that also uses {missing}",
+                "declare the library with symbols named like the columns",
+                raw=True,
+            )
+        )
     return [available.index(v) for v in library.variable_names]
 
 
@@ -106,8 +124,11 @@ def check_variation(names: Sequence[str], low: np.ndarray, high: np.ndarray, wha
     for name, lo, hi in zip(names, low, high):
         scale = max(abs(lo), abs(hi), 1e-300)
         if hi - lo <= 1e-12 * scale:
-            fix = ("remove it from the states or record a response in which it moves" if what == "state"
-                   else "remove it from the inputs (a dead sensor?); a free decay needs no input column")
+            fix = (
+                "remove it from the states or record a response in which it moves"
+                if what == "state"
+                else "remove it from the inputs (a dead sensor?); a free decay needs no input column"
+            )
             raise DataError(expected(f"{what} {name!r}", "a column that varies", f"a constant {lo:.6g}", fix, raw=True))
 
 
@@ -115,8 +136,9 @@ def check_variation(names: Sequence[str], low: np.ndarray, high: np.ndarray, wha
 SQUARE_RANGE = (1e-290, 1e290)
 
 
-def check_representable(trajectories, columns, library: Library, evaluator: Evaluator, probe: int = 1024,
-                        n_states: int | None = None) -> None:
+def check_representable(
+    trajectories, columns, library: Library, evaluator: Evaluator, probe: int = 1024, n_states: int | None = None
+) -> None:
     """Refuse data in units that put a library column's squares outside :data:`SQUARE_RANGE`: they would
     underflow (x**3 of 1e-60 silently dropped) or overflow in the Gram matrix. Probed on at most ``probe``
     rows of each record (its first ``n_states`` state columns, default all, then its inputs)."""
@@ -131,9 +153,15 @@ def check_representable(trajectories, columns, library: Library, evaluator: Eval
         bad = np.flatnonzero((top > 0) & ~((mean_square > SQUARE_RANGE[0]) & (mean_square < SQUARE_RANGE[1])))
         if bad.size:
             j = int(bad[0])
-            raise DataError(expected(f"term {library.names[j]!r}", "values whose squares a double holds (a root mean "
-                                     "square between 1e-145 and 1e145)", f"{rms[j]:.3g} on this record",
-                                     "express the states and inputs in other units, or lower the degree", raw=True))
+            raise DataError(
+                expected(
+                    f"term {library.names[j]!r}",
+                    "values whose squares a double holds (a root mean square between 1e-145 and 1e145)",
+                    f"{rms[j]:.3g} on this record",
+                    "express the states and inputs in other units, or lower the degree",
+                    raw=True,
+                )
+            )
 
 
 def check_inputs_vary(traj: Trajectory, library: Library) -> None:
@@ -158,9 +186,19 @@ def _regroup(pairs: Iterator, rows: int) -> Iterator:
         yield (Ds[0], Ys[0]) if len(Ds) == 1 else (np.vstack(Ds), np.vstack(Ys))
 
 
-def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differentiator, evaluator: Evaluator,
-                h: float, chunk_size: int, bar: Progress | None = None, measured: np.ndarray | None = None,
-                replaced: tuple = ()) -> GramStats:
+def block_stats(
+    X: np.ndarray,
+    Z: np.ndarray,
+    r0: int,
+    r1: int,
+    diff: Differentiator,
+    evaluator: Evaluator,
+    h: float,
+    chunk_size: int,
+    bar: Progress | None = None,
+    measured: np.ndarray | None = None,
+    replaced: tuple = (),
+) -> GramStats:
     """Statistics of rows ``r0:r1`` of a block of samples, evaluating about ``chunk_size`` samples at a time.
 
     Parameters
@@ -190,8 +228,8 @@ def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differenti
     if measured is not None and measured.shape[1]:
         direct = diff.reduce(measured)  # the window averages (or samples) that pair with the dictionary's rows
         Y = np.array(Y, dtype=float)
-        Y[:, list(replaced)] = direct[:, :len(replaced)]
-        Y = np.column_stack([Y, direct[:, len(replaced):]])
+        Y[:, list(replaced)] = direct[:, : len(replaced)]
+        Y = np.column_stack([Y, direct[:, len(replaced) :]])
     stencil = diff.stencil
     step = max(1, chunk_size // stencil.stride) if stencil.stride else chunk_size
 
@@ -199,15 +237,24 @@ def block_stats(X: np.ndarray, Z: np.ndarray, r0: int, r1: int, diff: Differenti
         for a in range(r0, r1, step):
             b = min(a + step, r1)
             s0, s1 = stencil.sample_span(a, b)
-            yield diff.reduce(evaluator.evaluate(Z[s0:s1]))[-(b - a):], Y[a:b]
+            yield diff.reduce(evaluator.evaluate(Z[s0:s1]))[-(b - a) :], Y[a:b]
             if bar is not None:
                 bar.update(b - a)
 
     return GramStats.from_chunks(_regroup(slabs(), chunk_size))
 
 
-def regression_stats(data, library: Library, *, derivative="weak", chunk_size: int = 4096,
-                     jit="auto", states=None, derivatives=None, outputs=()) -> RegressionStats:
+def regression_stats(
+    data,
+    library: Library,
+    *,
+    derivative="weak",
+    chunk_size: int = 4096,
+    jit="auto",
+    states=None,
+    derivatives=None,
+    outputs=(),
+) -> RegressionStats:
     """Accumulate the regression statistics of ``data`` over ``library`` chunk by chunk.
 
     Parameters
@@ -248,14 +295,7 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
     derivatives = dict(derivatives or {})
     outputs = tuple(outputs)
-    first = trajectories[0]
-    names = (tuple(n for n in first.state_names if n not in set(derivatives.values()) | set(outputs))
-             if states is None else tuple(states))
-    direct = [derivatives[n] for n in names if n in derivatives] + list(outputs)
-    absent = [n for n in list(names) + direct if n not in first.state_names]
-    if absent or set(derivatives) - set(names):
-        raise DataError(expected("data", f"columns for the states {list(names)}, the derivatives {derivatives} and "
-                                 f"the outputs {list(outputs)}", f"columns {list(first.state_names)}", raw=True))
+    names, direct = _target_columns(trajectories[0], states, derivatives, outputs)
     replaced = tuple(names.index(n) for n in names if n in derivatives)
     trajectories = [tr.with_states(list(names) + direct) for tr in trajectories]
     for traj in trajectories:
@@ -272,16 +312,63 @@ def regression_stats(data, library: Library, *, derivative="weak", chunk_size: i
     enough_rows(n_rows, len(library), f"{len(trajectories)} record(s) with {type(diff).__name__}")
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     check_representable(trajectories, columns, library, evaluator, n_states=n_states)
-    total = None
     with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
-        for traj, cols in zip(trajectories, columns):
-            Z = np.ascontiguousarray(np.column_stack([traj.states[:, :n_states], traj.inputs])[:, cols])
-            r0, r1 = diff.stencil.rows(traj.n_samples, True, True)
-            if r1 <= r0:
-                continue
-            part = block_stats(traj.states[:, :n_states], Z, r0, r1, diff, evaluator, traj.dt, chunk_size, bar,
-                               measured=traj.states[:, n_states:], replaced=replaced)
-            total = part if total is None else total + part
+        total = _accumulate(trajectories, columns, n_states, diff, evaluator, chunk_size, bar, replaced)
+    return RegressionStats(
+        total,
+        library,
+        names,
+        trajectories[0].input_names,
+        diff,
+        outputs,
+        tuple((n, derivatives[n]) for n in names if n in derivatives),
+    )
+
+
+def _target_columns(first: Trajectory, states, derivatives: dict, outputs: tuple) -> tuple[tuple, list]:
+    """The state columns and the columns that are targets as they are (measured derivatives, then outputs)."""
+    names = (
+        tuple(n for n in first.state_names if n not in set(derivatives.values()) | set(outputs))
+        if states is None
+        else tuple(states)
+    )
+    direct = [derivatives[n] for n in names if n in derivatives] + list(outputs)
+    absent = [n for n in list(names) + direct if n not in first.state_names]
+    if absent or set(derivatives) - set(names):
+        raise DataError(
+            expected(
+                "data",
+                f"columns for the states {list(names)}, the derivatives {derivatives} and the outputs {list(outputs)}",
+                f"columns {list(first.state_names)}",
+                raw=True,
+            )
+        )
+    return names, direct
+
+
+def _accumulate(
+    trajectories, columns, n_states: int, diff: Differentiator, evaluator: Evaluator, chunk_size: int, bar, replaced
+) -> GramStats:
+    """The statistics of every record's rows, summed."""
+    total = None
+    for traj, cols in zip(trajectories, columns):
+        Z = np.ascontiguousarray(np.column_stack([traj.states[:, :n_states], traj.inputs])[:, cols])
+        r0, r1 = diff.stencil.rows(traj.n_samples, True, True)
+        if r1 <= r0:
+            continue
+        part = block_stats(
+            traj.states[:, :n_states],
+            Z,
+            r0,
+            r1,
+            diff,
+            evaluator,
+            traj.dt,
+            chunk_size,
+            bar,
+            measured=traj.states[:, n_states:],
+            replaced=replaced,
+        )
+        total = part if total is None else total + part
     assert total is not None  # enough_rows() refused records without a row
-    return RegressionStats(total, library, names, trajectories[0].input_names, diff, outputs,
-                           tuple((n, derivatives[n]) for n in names if n in derivatives))
+    return total

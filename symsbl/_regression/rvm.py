@@ -163,8 +163,9 @@ class RVM:
         "verbose": Constraint.boolean(),
     }
 
-    def __init__(self, *, noise_var=None, noise_floor=1e-6, max_iter=10000, free=(),
-                 prune_nats="ebic", tol=1e-3, verbose=False):
+    def __init__(
+        self, *, noise_var=None, noise_floor=1e-6, max_iter=10000, free=(), prune_nats="ebic", tol=1e-3, verbose=False
+    ):
         self.noise_var = noise_var
         self.noise_floor = noise_floor
         self.max_iter = max_iter
@@ -196,12 +197,14 @@ class RVM:
         take an RVM; scikit-learn is imported only when it asks."""
         from sklearn.utils import RegressorTags, Tags, TargetTags
 
-        return Tags(estimator_type="regressor", target_tags=TargetTags(required=True),
-                    regressor_tags=RegressorTags())
+        return Tags(estimator_type="regressor", target_tags=TargetTags(required=True), regressor_tags=RegressorTags())
 
     def __repr__(self) -> str:
-        defaults = {p.name: p.default for p in inspect.signature(type(self).__init__).parameters.values()
-                    if p.kind is p.KEYWORD_ONLY}
+        defaults = {
+            p.name: p.default
+            for p in inspect.signature(type(self).__init__).parameters.values()
+            if p.kind is p.KEYWORD_ONLY
+        }
         changed = [f"{k}={v!r}" for k, v in self.get_params().items() if not _same(v, defaults[k])]
         return f"{type(self).__name__}({', '.join(changed)})"
 
@@ -221,8 +224,15 @@ class RVM:
         residual = None
         if stats.r_factor is not None:
             residual = _qr_residual(stats.r_factor, scale, stats.n_terms + target)
-        return self._fit(stats.gram / np.outer(scale, scale), scale, stats.dty[:, target],
-                         float(stats.yty[target]), stats.y_sum[target], float(stats.n_samples), residual)
+        return self._fit(
+            stats.gram / np.outer(scale, scale),
+            scale,
+            stats.dty[:, target],
+            float(stats.yty[target]),
+            stats.y_sum[target],
+            float(stats.n_samples),
+            residual,
+        )
 
     def _fit(self, gram, scale, dty, tt, y_sum, n, residual=None):
         """Solve from the unit-normalised Gram (a matrix or a column source) and the moments."""
@@ -237,16 +247,24 @@ class RVM:
         if not var_t > 1e-14 * tt / n:
             var_t = tt / n  # constant target: measure it against its mean square
         if not var_t > 0:
-            raise DataError(expected("y", "a target that is not identically zero", "all zeros",
-                                     "there is nothing to fit", raw=True))
+            raise DataError(
+                expected("y", "a target that is not identically zero", "all zeros", "there is nothing to fit", raw=True)
+            )
         # the target in units of its standard deviation, as the columns in units of their norm: then no threshold
         # of the solver (theta > 1e-12, the first prior) depends on the unit the data are in
         unit = np.sqrt(var_t)
         sol = solve(
-            gram, dty / scale / unit, tt / unit**2, n, 1.0,
+            gram,
+            dty / scale / unit,
+            tt / unit**2,
+            n,
+            1.0,
             beta_fixed=None if self.noise_var is None else unit**2 / options["noise_var"],
             beta_max=np.inf if self.noise_floor == 0 else 1.0 / self.noise_floor,
-            free=options["free"], prune=options["prune"], max_iter=self.max_iter, tol=self.tol,
+            free=options["free"],
+            prune=options["prune"],
+            max_iter=self.max_iter,
+            tol=self.tol,
             residual=None if residual is None else (lambda active, mu: residual(active, mu * unit) / unit**2),
             log=print if self.verbose else None,
         )
@@ -271,16 +289,24 @@ class RVM:
         self.n_features_in_ = M
         if not sol.converged:
             warnings.warn(
-                f"RVM did not converge in max_iter = {self.max_iter} iterations; "
-                "increase max_iter or tol.", RuntimeWarning, stacklevel=3,
+                f"RVM did not converge in max_iter = {self.max_iter} iterations; increase max_iter or tol.",
+                RuntimeWarning,
+                stacklevel=3,
             )
 
     def predict(self, X, return_std=False):
         """Predictive mean, and with ``return_std`` the predictive standard deviation
         ``sqrt(noise_var + d(x)^T Sigma d(x))``, for ``X`` (n_samples, n_terms)."""
         if not hasattr(self, "coef_"):
-            raise ParameterError(expected("RVM", "a fitted estimator", "one not fitted yet",
-                                          "call fit(X, y) or fit_stats(stats) first", raw=True))
+            raise ParameterError(
+                expected(
+                    "RVM",
+                    "a fitted estimator",
+                    "one not fitted yet",
+                    "call fit(X, y) or fit_stats(stats) first",
+                    raw=True,
+                )
+            )
         X = _as_matrix(X, "X")
         if X.shape[1] != self.n_features_in_:
             raise DataError(expected("X", f"{self.n_features_in_} columns (as in fit)", f"{X.shape[1]}", raw=True))

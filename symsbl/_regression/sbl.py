@@ -315,8 +315,9 @@ def solve(
     # none gains ``prune`` nats on its own, although the penalised optimum is far better.
     n_iter, converged = _iterate(state, 0.0, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
     if prune > 0:
-        more, converged = _iterate(state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n,
-                                   log)
+        more, converged = _iterate(
+            state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log
+        )
         n_iter += more
 
     state.recompute()  # clear rank-one drift before reporting
@@ -345,12 +346,12 @@ def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, resid
             else:
                 state.delete(state.active.index(j))
             if log is not None:
-                log(f"iter {n_iter:5d}  {_ACTION_NAMES[int(action[j])]:11s} column {j:4d}"
-                    f"  gain {gain[j]:.4g} nats  m = {len(state.active)}")
+                log(
+                    f"iter {n_iter:5d}  {_ACTION_NAMES[int(action[j])]:11s} column {j:4d}"
+                    f"  gain {gain[j]:.4g} nats  m = {len(state.active)}"
+                )
 
-        if beta_fixed is None and (
-            terminate or n_iter <= _BETA_UPDATE_START or n_iter % _BETA_UPDATE_EVERY == 0
-        ):
+        if beta_fixed is None and (terminate or n_iter <= _BETA_UPDATE_START or n_iter % _BETA_UPDATE_EVERY == 0):
             gamma = 1.0 - state.alpha * np.diag(state.sigma)
             resid = residual(state.active, state.mu)
             new_beta = min((n - np.sum(gamma)) / resid, beta_max)
@@ -387,12 +388,24 @@ def _finish(state, residual, n, n_iter, converged):
     beta = state.beta
     resid = residual(list(u), mu)
     log_evidence = 0.5 * (
-        n * np.log(beta) - beta * resid - mu @ (alpha * mu) + np.sum(np.log(alpha))
-        - state.log_det - n * np.log(2.0 * np.pi)
+        n * np.log(beta)
+        - beta * resid
+        - mu @ (alpha * mu)
+        + np.sum(np.log(alpha))
+        - state.log_det
+        - n * np.log(2.0 * np.pi)
     )
     contribution = state.contribution()[order]
     return Solution(
-        active=u, alpha=alpha, mu=mu, sigma=sigma, beta=float(beta),
-        log_evidence=float(log_evidence), contribution=contribution, s_out=s, q_out=q,
-        n_iter=n_iter, converged=converged,
+        active=u,
+        alpha=alpha,
+        mu=mu,
+        sigma=sigma,
+        beta=float(beta),
+        log_evidence=float(log_evidence),
+        contribution=contribution,
+        s_out=s,
+        q_out=q,
+        n_iter=n_iter,
+        converged=converged,
     )

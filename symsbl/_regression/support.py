@@ -201,5 +201,3 @@ def search_support(first: RVM, stats, target, keys, template, tol):
         if not changed:
             break
     return sorted(active), alternatives, search
-
-

@@ -14,6 +14,13 @@ from .records import ChunkedRecord, chunked, open_npz
 from .stream import identify_stream, stream_stats
 
 __all__ = [
-    "ChunkedRecord", "chunked", "open_npz", "stream_stats", "identify_stream", "identify_many", "dask_stats",
-    "identify_dask", "from_delayed",
+    "ChunkedRecord",
+    "chunked",
+    "open_npz",
+    "stream_stats",
+    "identify_stream",
+    "identify_many",
+    "dask_stats",
+    "identify_dask",
+    "from_delayed",
 ]

@@ -99,8 +99,16 @@ class _Slice:
     r1: int
 
 
-def _slice_stats(arr, plan: _Slice, library: _PortableLibrary, diff, names: tuple[tuple[str, ...], tuple[str, ...]], h,
-                 chunk_size, jit):
+def _slice_stats(
+    arr,
+    plan: _Slice,
+    library: _PortableLibrary,
+    diff,
+    names: tuple[tuple[str, ...], tuple[str, ...]],
+    h,
+    chunk_size,
+    jit,
+):
     """Map step: (statistics, per-column minimum, per-column maximum) of one slice."""
     lib = library.load()
     arr = np.asarray(arr, dtype=float)
@@ -159,15 +167,26 @@ def _dask_records(records, n_columns: int, names) -> list:
         raise DataError(expected("records", "a dask array or a non-empty list of them", "an empty list", raw=True))
     for k, rec in enumerate(items):
         if not isinstance(rec, da.Array):
-            hint = "turn a list of delayed chunks into one with symsbl.from_delayed" if isinstance(
-                rec, Delayed) else ""
-            raise DataError(expected(
-                f"records[{k}]", f"a dask.array.Array of shape (n_samples, {n_columns}) with columns "
-                f"{['t', *names[0], *names[1]]}", type(rec).__name__, hint, raw=True))
+            hint = "turn a list of delayed chunks into one with symsbl.from_delayed" if isinstance(rec, Delayed) else ""
+            raise DataError(
+                expected(
+                    f"records[{k}]",
+                    f"a dask.array.Array of shape (n_samples, {n_columns}) with columns {['t', *names[0], *names[1]]}",
+                    type(rec).__name__,
+                    hint,
+                    raw=True,
+                )
+            )
         if rec.ndim != 2 or rec.shape[1] != n_columns or np.isnan(rec.shape[0]):
-            raise DataError(expected(
-                f"records[{k}]", f"shape (n_samples, {n_columns}) with columns {['t', *names[0], *names[1]]} "
-                "and a known number of samples", f"shape {rec.shape}", raw=True))
+            raise DataError(
+                expected(
+                    f"records[{k}]",
+                    f"shape (n_samples, {n_columns}) with columns {['t', *names[0], *names[1]]} "
+                    "and a known number of samples",
+                    f"shape {rec.shape}",
+                    raw=True,
+                )
+            )
     return items
 
 
@@ -295,8 +314,13 @@ def dask_stats(
     n_columns = 1 + len(names[0]) + len(names[1])
     items = _dask_records(records, n_columns, names)
     head = np.asarray(items[0][: min(RESOLVE_SAMPLES, items[0].shape[0])].compute(scheduler=scheduler), dtype=float)
-    t, X, U = validate(head[:, 0], head[:, 1 : n_columns - len(names[1])], head[:, n_columns - len(names[1]) :],
-                       *names, source="records[0]")
+    t, X, U = validate(
+        head[:, 0],
+        head[:, 1 : n_columns - len(names[1])],
+        head[:, n_columns - len(names[1]) :],
+        *names,
+        source="records[0]",
+    )
     library_columns(*names, library)  # names the missing variables, if any
     h = float(t[1] - t[0])
     diff = get_differentiator(derivative).resolve(np.arange(len(X)) * h, X, n_terms=len(library))
@@ -308,12 +332,15 @@ def dask_stats(
             if plan.stop - plan.start < halo.min_samples:
                 continue
             n_rows += plan.r1 - plan.r0
-            parts.append(dask.delayed(_slice_stats, pure=True)(
-                rec[plan.start : plan.stop], plan, portable, diff, names, h, chunk_size, jit))
+            parts.append(
+                dask.delayed(_slice_stats, pure=True)(
+                    rec[plan.start : plan.stop], plan, portable, diff, names, h, chunk_size, jit
+                )
+            )
     enough_rows(n_rows, len(library), f"{len(items)} record(s) with {type(diff).__name__}")
     while len(parts) > 1:
         parts = [dask.delayed(_add, pure=True)(parts[k : k + FAN_IN]) for k in range(0, len(parts), FAN_IN)]
-    (stats, lo, hi), = dask.compute(parts[0], scheduler=scheduler)
+    ((stats, lo, hi),) = dask.compute(parts[0], scheduler=scheduler)
     ns = len(names[0])
     check_variation(names[0], lo[:ns], hi[:ns])
     used = [k for k, n in enumerate(names[1]) if n in library.variable_names]
@@ -366,8 +393,15 @@ def identify_dask(
     ['x1', 'x2', 'x1**3', 'F']
     """
     problem = dask_stats(
-        records, library, states=states, inputs=inputs, derivative=derivative, block_samples=block_samples,
-        chunk_size=chunk_size, jit=jit, scheduler=scheduler,
+        records,
+        library,
+        states=states,
+        inputs=inputs,
+        derivative=derivative,
+        block_samples=block_samples,
+        chunk_size=chunk_size,
+        jit=jit,
+        scheduler=scheduler,
     )
     model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
     if not refine:
@@ -376,11 +410,12 @@ def identify_dask(
     names = (tuple(states), tuple(inputs))
     items = _dask_records(records, 1 + len(names[0]) + len(names[1]), names)
     options = dict(refine_options or {})
-    plan, note = window_plan([int(r.shape[0]) for r in items],
-                             integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64))
+    plan, note = window_plan(
+        [int(r.shape[0]) for r in items], integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64)
+    )
     ns = len(names[0])
     windows = []
     for k, a, b in plan:
         arr = np.asarray(items[k][a:b].compute(scheduler=scheduler), dtype=float)
-        windows.append(Trajectory(arr[:, 0], arr[:, 1:1 + ns], arr[:, 1 + ns:], names[0], names[1]))
+        windows.append(Trajectory(arr[:, 0], arr[:, 1 : 1 + ns], arr[:, 1 + ns :], names[0], names[1]))
     return refine_or_keep(model, windows, library=library, options=options, note=note)

@@ -24,8 +24,16 @@ from .._base.checks import integer, number
 from .._base.errors import DataError, expected
 from .._data.trajectory import TIME_RTOL, Trajectory, validate
 
-__all__ = ["ChunkedRecord", "chunked", "open_npz", "as_records", "RecordReader", "blocks", "read_windows",
-           "BLOCK_SAMPLES"]
+__all__ = [
+    "ChunkedRecord",
+    "chunked",
+    "open_npz",
+    "as_records",
+    "RecordReader",
+    "blocks",
+    "read_windows",
+    "BLOCK_SAMPLES",
+]
 
 #: Samples gathered per block when a record arrives in smaller chunks (8 s at 32768 Hz).
 BLOCK_SAMPLES = 2**18
@@ -97,14 +105,27 @@ def chunked(chunks, *, states: Sequence[str] | None = None, inputs: Sequence[str
 
         def source():
             if used:
-                raise DataError(expected("chunks", "a record that can be read again", "an iterator, already read",
-                                         "pass a list or a function returning a new iterator", raw=True))
+                raise DataError(
+                    expected(
+                        "chunks",
+                        "a record that can be read again",
+                        "an iterator, already read",
+                        "pass a list or a function returning a new iterator",
+                        raw=True,
+                    )
+                )
             used.append(True)
             return iter(chunks)
     else:
-        raise DataError(expected(
-            "chunks", "a sequence, an iterator or a function returning an iterator of Trajectory or array chunks",
-            type(chunks).__name__, "pass a single in-memory Trajectory to stream_stats directly", raw=True))
+        raise DataError(
+            expected(
+                "chunks",
+                "a sequence, an iterator or a function returning an iterator of Trajectory or array chunks",
+                type(chunks).__name__,
+                "pass a single in-memory Trajectory to stream_stats directly",
+                raw=True,
+            )
+        )
     names = None if states is None else tuple(states)
     return ChunkedRecord(source, names, tuple(inputs) if names is not None else None, "chunks")
 
@@ -121,8 +142,11 @@ def _npz_columns(path: Path, names: Sequence[str]) -> tuple[dict, int]:
         lengths: dict[str, int] = {}
         for name in names:
             if name not in members:
-                raise DataError(expected(f"{path}: column {name!r}", f"a column among {sorted(members)}",
-                                         "no such column", raw=True))
+                raise DataError(
+                    expected(
+                        f"{path}: column {name!r}", f"a column among {sorted(members)}", "no such column", raw=True
+                    )
+                )
             info = members[name]
             with zf.open(info) as fh:
                 version = np.lib.format.read_magic(fh)
@@ -130,8 +154,14 @@ def _npz_columns(path: Path, names: Sequence[str]) -> tuple[dict, int]:
                 shape, _, dtype = read(fh)
                 header = fh.tell()
             if len([s for s in shape if s != 1]) > 1 or not np.issubdtype(dtype, np.number):
-                raise DataError(expected(f"{path}: column {name!r}", "a numeric vector (N, 1xN or Nx1)",
-                                         f"shape {shape} and dtype {dtype}", raw=True))
+                raise DataError(
+                    expected(
+                        f"{path}: column {name!r}",
+                        "a numeric vector (N, 1xN or Nx1)",
+                        f"shape {shape} and dtype {dtype}",
+                        raw=True,
+                    )
+                )
             lengths[name] = int(np.prod(shape))
             if info.compress_type == zipfile.ZIP_STORED:
                 with open(path, "rb") as raw:
@@ -211,8 +241,9 @@ def open_npz(
     readers, n = _npz_columns(path, names)
     stop = n if stop is None else min(int(stop), n)
     if not (0 <= start < stop):
-        raise DataError(expected("start, stop", f"0 <= start < stop <= {n} samples", f"start={start}, stop={stop}",
-                                 raw=True))
+        raise DataError(
+            expected("start, stop", f"0 <= start < stop <= {n} samples", f"start={start}, stop={stop}", raw=True)
+        )
 
     def source():
         with contextlib.ExitStack() as stack:
@@ -241,13 +272,22 @@ def as_records(records) -> list:
     if isinstance(records, (Trajectory, ChunkedRecord)):
         return [records]
     if isinstance(records, (str, Path)):
-        raise DataError(expected("records", "a Trajectory, a ChunkedRecord or a list of them",
-                                 f"the path {str(records)!r}",
-                                 "open it with symsbl.open_npz(path, states=..., inputs=...)", raw=True))
+        raise DataError(
+            expected(
+                "records",
+                "a Trajectory, a ChunkedRecord or a list of them",
+                f"the path {str(records)!r}",
+                "open it with symsbl.open_npz(path, states=..., inputs=...)",
+                raw=True,
+            )
+        )
     if isinstance(records, (list, tuple)) and records:
         return list(records)
-    raise DataError(expected("records", "a Trajectory, a ChunkedRecord or a non-empty list of them",
-                             type(records).__name__, raw=True))
+    raise DataError(
+        expected(
+            "records", "a Trajectory, a ChunkedRecord or a non-empty list of them", type(records).__name__, raw=True
+        )
+    )
 
 
 class RecordReader:
@@ -260,16 +300,23 @@ class RecordReader:
         if isinstance(record, Trajectory):
             self.label = f"records[{index}]"
             self.names = (record.state_names, record.input_names)
-            self._chunks = lambda: (record.slice(a, a + BLOCK_SAMPLES)
-                                    for a in range(0, record.n_samples, BLOCK_SAMPLES))
+            self._chunks = lambda: (
+                record.slice(a, a + BLOCK_SAMPLES) for a in range(0, record.n_samples, BLOCK_SAMPLES)
+            )
         elif isinstance(record, ChunkedRecord):
             self.label = f"records[{index}] ({record.label})"
             states, inputs = record.state_names, record.input_names  # both None or both set
             self.names = None if states is None or inputs is None else (states, inputs)
             self._chunks = record.source
         else:
-            raise DataError(expected(f"records[{index}]", "a Trajectory or a ChunkedRecord (from symsbl.chunked or "
-                                     "open_npz)", type(record).__name__, raw=True))
+            raise DataError(
+                expected(
+                    f"records[{index}]",
+                    "a Trajectory or a ChunkedRecord (from symsbl.chunked or open_npz)",
+                    type(record).__name__,
+                    raw=True,
+                )
+            )
         self.h: float | None = None
         self.t_last: float | None = None
 
@@ -286,17 +333,36 @@ class RecordReader:
             if self.names is None:
                 self.names = names
             if names != self.names:
-                raise DataError(expected(where, f"states {self.names[0]} and inputs {self.names[1]} like the rest "
-                                         "of the record", f"states {names[0]} and inputs {names[1]}", raw=True))
+                raise DataError(
+                    expected(
+                        where,
+                        f"states {self.names[0]} and inputs {self.names[1]} like the rest of the record",
+                        f"states {names[0]} and inputs {names[1]}",
+                        raw=True,
+                    )
+                )
             return chunk.t, chunk.states, chunk.inputs
         if self.names is None:
-            raise DataError(expected(where, "column names for array chunks", "none",
-                                     "pass states=... (and inputs=...) to symsbl.chunked", raw=True))
+            raise DataError(
+                expected(
+                    where,
+                    "column names for array chunks",
+                    "none",
+                    "pass states=... (and inputs=...) to symsbl.chunked",
+                    raw=True,
+                )
+            )
         arr = np.asarray(chunk, dtype=float)
         ns, ni = len(self.names[0]), len(self.names[1])
         if arr.ndim != 2 or arr.shape[1] != 1 + ns + ni:
-            raise DataError(expected(where, f"an array of shape (n, {1 + ns + ni}) with columns "
-                                     f"{['t', *self.names[0], *self.names[1]]}", f"shape {arr.shape}", raw=True))
+            raise DataError(
+                expected(
+                    where,
+                    f"an array of shape (n, {1 + ns + ni}) with columns {['t', *self.names[0], *self.names[1]]}",
+                    f"shape {arr.shape}",
+                    raw=True,
+                )
+            )
         if len(arr) == 1:  # a single sample: validate() needs two, so check it by hand
             if not np.all(np.isfinite(arr)):
                 raise DataError(expected(where, "finite values", "a non-finite value in its only row", raw=True))
@@ -311,11 +377,15 @@ class RecordReader:
         if self.t_last is not None and self.h is not None:
             gap = float(t[0] - self.t_last)
             if abs(gap - self.h) > TIME_RTOL * self.h:
-                raise DataError(expected(
-                    f"{self.label} chunk {k}", f"a start one sample interval ({self.h!r} s) after the previous chunk",
-                    f"t = {t[0]!r}, {gap!r} s after it",
-                    "chunks must be consecutive pieces of one record; pass separate records as list entries",
-                    raw=True))
+                raise DataError(
+                    expected(
+                        f"{self.label} chunk {k}",
+                        f"a start one sample interval ({self.h!r} s) after the previous chunk",
+                        f"t = {t[0]!r}, {gap!r} s after it",
+                        "chunks must be consecutive pieces of one record; pass separate records as list entries",
+                        raw=True,
+                    )
+                )
         self.t_last = float(t[-1])
 
 

@@ -117,8 +117,15 @@ def stream_stats(
     >>> bool(np.allclose(streamed.stats.gram, in_memory.stats.gram, rtol=1e-12))
     True
     """
-    return _stream_stats(records, library, derivative=derivative, chunk_size=chunk_size, block_samples=block_samples,
-                         jit=jit, n_jobs=n_jobs)[0]
+    return _stream_stats(
+        records,
+        library,
+        derivative=derivative,
+        chunk_size=chunk_size,
+        block_samples=block_samples,
+        jit=jit,
+        n_jobs=n_jobs,
+    )[0]
 
 
 def _stream_stats(records, library, *, derivative, chunk_size, block_samples, jit, n_jobs):
@@ -126,29 +133,41 @@ def _stream_stats(records, library, *, derivative, chunk_size, block_samples, ji
     records = as_records(records)
     if not isinstance(library, Library):
         raise LibraryError(expected("library", "a symsbl Library", type(library).__name__, raw=True))
-    for name, value, least in (("chunk_size", chunk_size, 1), ("block_samples", block_samples, 2),
-                               ("n_jobs", n_jobs, 1)):
+    for name, value, least in (
+        ("chunk_size", chunk_size, 1),
+        ("block_samples", block_samples, 2),
+        ("n_jobs", n_jobs, 1),
+    ):
         integer(name, value, low=least, error=DataError)
     diff = get_differentiator(derivative)
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     pool = ThreadPoolExecutor(n_jobs) if n_jobs > 1 else None
     total, n_rows, names, counts = None, 0, None, []
     lengths = [r.n_samples if isinstance(r, Trajectory) else None for r in records]
-    bar = Progress(f"dictionary ({len(library)} terms) and Gram, streamed", unit="samples",
-                   total=None if None in lengths else sum(lengths))
+    bar = Progress(
+        f"dictionary ({len(library)} terms) and Gram, streamed",
+        unit="samples",
+        total=None if None in lengths else sum(lengths),
+    )
     try:
         with bar:
             for index, record in enumerate(records):
                 reader = RecordReader(record, index)
-                part, rows, diff, count = _record_stats(reader, library, diff, evaluator, chunk_size, block_samples,
-                                                        pool, n_jobs, bar)
+                part, rows, diff, count = _record_stats(
+                    reader, library, diff, evaluator, chunk_size, block_samples, pool, n_jobs, bar
+                )
                 counts.append(count)
                 if names is None:
                     names = reader.names
                 elif reader.names != names:
-                    raise DataError(expected(
-                        f"records[{index}]", f"the states {names[0]} and inputs {names[1]} of records[0]",
-                        f"states {reader.names[0]}, inputs {reader.names[1]}", raw=True))
+                    raise DataError(
+                        expected(
+                            f"records[{index}]",
+                            f"the states {names[0]} and inputs {names[1]} of records[0]",
+                            f"states {reader.names[0]}, inputs {reader.names[1]}",
+                            raw=True,
+                        )
+                    )
                 n_rows += rows
                 if part is not None:
                     total = part if total is None else total + part
@@ -226,9 +245,9 @@ def _check_extremes(reader, library, lo, hi) -> None:
     if lo is None:
         raise DataError(expected(reader.label, "a record with samples", "an empty record", raw=True))
     states, inputs = reader.names
-    check_variation(states, lo[:len(states)], hi[:len(states)])
+    check_variation(states, lo[: len(states)], hi[: len(states)])
     used = [k for k, n in enumerate(inputs) if n in library.variable_names]
-    check_variation([inputs[k] for k in used], lo[len(states):][used], hi[len(states):][used], "input")
+    check_variation([inputs[k] for k in used], lo[len(states) :][used], hi[len(states) :][used], "input")
 
 
 def identify_stream(
@@ -272,8 +291,15 @@ def identify_stream(
     ['x1', 'x2', 'x1**3', 'F']
     """
     records = as_records(records)
-    problem, counts = _stream_stats(records, library, derivative=derivative, chunk_size=chunk_size,
-                                    block_samples=block_samples, jit=jit, n_jobs=n_jobs)
+    problem, counts = _stream_stats(
+        records,
+        library,
+        derivative=derivative,
+        chunk_size=chunk_size,
+        block_samples=block_samples,
+        jit=jit,
+        n_jobs=n_jobs,
+    )
     model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
     if not refine:
         return model

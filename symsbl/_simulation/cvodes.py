@@ -43,20 +43,26 @@ def run_cvodes(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit,
     with Progress(f"simulate {system.name} (cvodes)", total=t.size - 1, unit="steps") as bar:
         for a in range(0, t.size - 1, CVODES_SEGMENT):
             b = min(a + CVODES_SEGMENT, t.size - 1)
-            grid = t[a + 1:b + 1] - t[a]
+            grid = t[a + 1 : b + 1] - t[a]
             if solver is None or solver[0].size != grid.size or not np.allclose(solver[0], grid, rtol=0, atol=tol):
                 try:
                     F = ca.integrator("simulate", "cvodes", dae, 0.0, grid, opts)
                 except RuntimeError as err:
-                    raise SimulationError(expected("method", "a cvodes integrator that can be built",
-                                                   str(err).strip().splitlines()[-1][:120], "try method='rk4'",
-                                                   raw=True)) from None
+                    raise SimulationError(
+                        expected(
+                            "method",
+                            "a cvodes integrator that can be built",
+                            str(err).strip().splitlines()[-1][:120],
+                            "try method='rk4'",
+                            raw=True,
+                        )
+                    ) from None
                 solver = (grid, *F.buffer(), F.index_in("p"))
             _, buf, trigger, i_p = solver
             start, shift = np.array(out[a]), np.array([t[a]])
             buf.set_arg(0, memoryview(start))
             buf.set_arg(i_p, memoryview(shift))
-            buf.set_res(0, memoryview(out[a + 1:b + 1]))
+            buf.set_res(0, memoryview(out[a + 1 : b + 1]))
             try:
                 with interrupts_kept():  # a Ctrl-C inside CVODES comes back as CV_RHSFUNC_FAIL otherwise
                     trigger()

@@ -83,21 +83,43 @@ class OdeSystem:
         params = scalar_symbols(self.parameters, "parameters", SimulationError)
         scalar_symbols(states + inputs + params, "states, inputs and parameters together", SimulationError)
         if len(self.parameter_values) != len(params):
-            raise SimulationError(expected("parameter_values", f"one value per parameter ({len(params)})",
-                                           f"{len(self.parameter_values)} values", raw=True))
+            raise SimulationError(
+                expected(
+                    "parameter_values",
+                    f"one value per parameter ({len(params)})",
+                    f"{len(self.parameter_values)} values",
+                    raw=True,
+                )
+            )
         values = tuple(float(v) for v in self.parameter_values)
         rhs = tuple(self._to_sx(e, states + inputs + params) for e in self.rhs)
         if len(rhs) != len(states):
-            raise SimulationError(expected("rhs", f"one expression per state {[s.name() for s in states]}",
-                                           f"{len(rhs)} expressions", raw=True))
+            raise SimulationError(
+                expected(
+                    "rhs", f"one expression per state {[s.name() for s in states]}", f"{len(rhs)} expressions", raw=True
+                )
+            )
         known = {s.name() for s in states + inputs + params}
         free = sorted({s.name() for s in ca.symvar(ca.vertcat(*rhs))} - known) if rhs else []
         if free:
-            raise SimulationError(expected("rhs", f"expressions of the declared symbols {sorted(known)}",
-                                           f"expressions that also use {free}", "declare them", raw=True))
+            raise SimulationError(
+                expected(
+                    "rhs",
+                    f"expressions of the declared symbols {sorted(known)}",
+                    f"expressions that also use {free}",
+                    "declare them",
+                    raw=True,
+                )
+            )
         outputs = self._outputs(states + inputs + params, known)
-        for attr, val in (("states", states), ("inputs", inputs), ("rhs", rhs), ("parameters", params),
-                          ("parameter_values", values), ("outputs", outputs)):
+        for attr, val in (
+            ("states", states),
+            ("inputs", inputs),
+            ("rhs", rhs),
+            ("parameters", params),
+            ("parameter_values", values),
+            ("outputs", outputs),
+        ):
             object.__setattr__(self, attr, val)
 
     def _outputs(self, symbols, known: set) -> tuple:
@@ -106,17 +128,29 @@ class OdeSystem:
         out: list[tuple[str, ca.SX]] = []
         for item in raw:
             if not (isinstance(item, (tuple, list)) and len(item) == 2 and isinstance(item[0], str) and item[0]):
-                raise SimulationError(expected("outputs", "(name, expression) pairs or a mapping {name: expression}",
-                                               repr(item)[:60], raw=True))
+                raise SimulationError(
+                    expected(
+                        "outputs", "(name, expression) pairs or a mapping {name: expression}", repr(item)[:60], raw=True
+                    )
+                )
             name, expr = item
             if name in known or name in {n for n, _ in out} or name == "t":
-                raise SimulationError(expected("outputs", "names unlike the states', inputs', parameters' and each "
-                                               "other's", name, raw=True))
+                raise SimulationError(
+                    expected(
+                        "outputs", "names unlike the states', inputs', parameters' and each other's", name, raw=True
+                    )
+                )
             expr = self._to_sx(expr, symbols)
             free = sorted({s.name() for s in ca.symvar(expr)} - known)
             if free:
-                raise SimulationError(expected(f"output {name!r}", f"an expression of the declared symbols "
-                                               f"{sorted(known)}", f"one that also uses {free}", raw=True))
+                raise SimulationError(
+                    expected(
+                        f"output {name!r}",
+                        f"an expression of the declared symbols {sorted(known)}",
+                        f"one that also uses {free}",
+                        raw=True,
+                    )
+                )
             out.append((name, expr))
         return tuple(out)
 
@@ -174,8 +208,10 @@ class OdeSystem:
         return [ca.vertcat(*self.states), ca.vertcat(*self.inputs), ca.vertcat(*self.parameters)]
 
     def __repr__(self) -> str:
-        return (f"OdeSystem(name={self.name!r}, states={self.state_names}, inputs={self.input_names}, "
-                f"parameters={dict(zip(self.parameter_names, self.parameter_values))})")
+        return (
+            f"OdeSystem(name={self.name!r}, states={self.state_names}, inputs={self.input_names}, "
+            f"parameters={dict(zip(self.parameter_names, self.parameter_values))})"
+        )
 
     # ------------------------------------------------------------------ symbolic forms
     def rhs_expr(self) -> ca.SX:
@@ -187,28 +223,38 @@ class OdeSystem:
 
     def rhs_function(self) -> ca.Function:
         """``ca.Function("rhs", [x (n_states, 1), u (n_inputs, 1)], [xdot (n_states, 1)])``, parameters substituted."""
-        return ca.Function("rhs", [ca.vertcat(*self.states), ca.vertcat(*self.inputs)], [self.rhs_expr()],
-                           ["x", "u"], ["xdot"])
+        return ca.Function(
+            "rhs", [ca.vertcat(*self.states), ca.vertcat(*self.inputs)], [self.rhs_expr()], ["x", "u"], ["xdot"]
+        )
 
     def with_parameters(self, **values: float) -> OdeSystem:
         """Return a copy with some parameter values replaced, e.g. ``duffing().with_parameters(k3=2e9)``."""
         unknown = sorted(set(values) - set(self.parameter_names))
         if unknown:
-            raise SimulationError(expected("parameters", f"names among {list(self.parameter_names)} of {self.name!r}",
-                                           unknown))
+            raise SimulationError(
+                expected("parameters", f"names among {list(self.parameter_names)} of {self.name!r}", unknown)
+            )
         new = tuple(float(values.get(n, v)) for n, v in zip(self.parameter_names, self.parameter_values))
         return OdeSystem(self.states, self.inputs, self.rhs, self.parameters, new, self.name, self.outputs)
 
     def with_outputs(self, **outputs) -> OdeSystem:
         """Return a copy with these outputs added, ``name=expression`` (e.g. ``a=system.rhs[1]``, an
         accelerometer on the velocity ``x2``)."""
-        return OdeSystem(self.states, self.inputs, self.rhs, self.parameters, self.parameter_values, self.name,
-                         self.outputs + tuple(outputs.items()))
+        return OdeSystem(
+            self.states,
+            self.inputs,
+            self.rhs,
+            self.parameters,
+            self.parameter_values,
+            self.name,
+            self.outputs + tuple(outputs.items()),
+        )
 
     def output_function(self) -> ca.Function:
         """``ca.Function("outputs", [x, u, p], [y (n_outputs, 1)])``, the parameters an input."""
-        return ca.Function("outputs", self._symbols(), [ca.vertcat(*[e for _, e in self.outputs])],
-                           ["x", "u", "p"], ["y"])
+        return ca.Function(
+            "outputs", self._symbols(), [ca.vertcat(*[e for _, e in self.outputs])], ["x", "u", "p"], ["y"]
+        )
 
     def evaluate_outputs(self, X, U=None, parameters=None) -> np.ndarray:
         """The outputs on samples ``X`` ``(n_samples, n_states)`` and ``U``, at the parameter values (or the

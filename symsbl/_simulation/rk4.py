@@ -22,8 +22,15 @@ from .._base.progress import Progress
 from .ode import OdeSystem
 from .signals import Signal
 
-__all__ = ["rk4_step", "chunk_function", "run_rk4", "run_rk4_batch", "step_inputs", "first_nonfinite_row",
-           "JIT_MIN_STEPS"]
+__all__ = [
+    "rk4_step",
+    "chunk_function",
+    "run_rk4",
+    "run_rk4_batch",
+    "step_inputs",
+    "first_nonfinite_row",
+    "JIT_MIN_STEPS",
+]
 
 
 def first_nonfinite_row(a: np.ndarray) -> int | None:
@@ -61,8 +68,7 @@ def rk4_step(system: OdeSystem, signals: list[Signal], substeps: int) -> tuple[c
     stage times (node-major).
     """
     pars = ca.vertcat(*system.parameters) if system.parameters else ca.SX(0, 1)
-    rhs = ca.Function("rhs", [ca.vertcat(*system.states), ca.vertcat(*system.inputs), pars],
-                      [ca.vertcat(*system.rhs)])
+    rhs = ca.Function("rhs", [ca.vertcat(*system.states), ca.vertcat(*system.inputs), pars], [ca.vertcat(*system.rhs)])
     p = ca.SX.sym("p", pars.numel())
     x = ca.SX.sym("x", system.n_states)
     tk, dt = ca.SX.sym("t"), ca.SX.sym("dt")
@@ -77,7 +83,7 @@ def rk4_step(system: OdeSystem, signals: list[Signal], substeps: int) -> tuple[c
                 parts.append(s.expr(tk + node * dt / (2 * substeps)))
             else:
                 start = node * n_sampled + col
-                parts.append(ud[start:start + s.n_outputs])
+                parts.append(ud[start : start + s.n_outputs])
                 col += s.n_outputs
         return ca.vertcat(*parts) if parts else ca.SX(0, 1)
 
@@ -133,17 +139,17 @@ def run_rk4(system, t, signals, x0, *, rtol, atol, substeps, chunk_size, jit, op
         for k0 in range(0, n_pad, chunk):
             buf.set_arg(0, memoryview(states[k0]))
             for i, a in enumerate(args, start=1):
-                buf.set_arg(i, memoryview(a[k0:k0 + chunk]))
-            block = states[k0 + 1:k0 + chunk + 1]
+                buf.set_arg(i, memoryview(a[k0 : k0 + chunk]))
+            block = states[k0 + 1 : k0 + chunk + 1]
             buf.set_res(0, memoryview(block))
             trigger()
             bad = first_nonfinite_row(block)
             if bad is not None and k0 + 1 + bad < t.size:
                 row = k0 + 1 + bad
                 states[row:] = np.nan
-                return states[:t.size], float(t[row]), "the state became non-finite (NaN/inf)"
+                return states[: t.size], float(t[row]), "the state became non-finite (NaN/inf)"
             bar.update(min(chunk, n_steps - k0))
-    return states[:t.size], None, ""
+    return states[: t.size], None, ""
 
 
 def _batch_chunk(step: ca.Function, n_draws: int, chunk: int, jit, n_work: int) -> ca.Function:
@@ -161,19 +167,24 @@ def _batch_chunk(step: ca.Function, n_draws: int, chunk: int, jit, n_work: int) 
     shared = [1, 2] + ([4] if step.n_in() > 4 else [])  # time, step and input: the same for every draw
     mapped = step.map("rk4_draws", "serial", n_draws, shared, [])
     acc = mapped.mapaccum("rk4_batch_steps", chunk)
-    args = [ca.MX.sym("x", step.size1_in(0), n_draws), ca.MX.sym("t", 1, chunk), ca.MX.sym("dt", 1, chunk),
-            ca.MX.sym("p", step.size1_in(3), n_draws)]
+    args = [
+        ca.MX.sym("x", step.size1_in(0), n_draws),
+        ca.MX.sym("t", 1, chunk),
+        ca.MX.sym("dt", 1, chunk),
+        ca.MX.sym("p", step.size1_in(3), n_draws),
+    ]
     call = args[:3] + [ca.repmat(args[3], 1, chunk)]
     if step.n_in() > 4:
         args.append(ca.MX.sym("ud", step.size1_in(4), chunk))
         call.append(args[4])
-    wrapper = ca.Function("rk4_batch", args, [acc(*call)], ["x", "t", "dt", "p", "ud"][:len(args)], ["x_next"])
+    wrapper = ca.Function("rk4_batch", args, [acc(*call)], ["x", "t", "dt", "p", "ud"][: len(args)], ["x_next"])
     fn, _ = jit_wrap(wrapper, "rk4_batch", jit, SimulationError, only_cached=lazy, key=key)
     return fn
 
 
-def run_rk4_batch(system: OdeSystem, t, signals, x0, parameters, *, substeps: int = 1, chunk_size: int = 4096,
-                  jit="auto") -> tuple[np.ndarray, np.ndarray]:
+def run_rk4_batch(
+    system: OdeSystem, t, signals, x0, parameters, *, substeps: int = 1, chunk_size: int = 4096, jit="auto"
+) -> tuple[np.ndarray, np.ndarray]:
     """RK4 of ``system`` for every row of ``parameters`` in one compiled call per chunk.
 
     Parameters
@@ -206,12 +217,12 @@ def run_rk4_batch(system: OdeSystem, t, signals, x0, parameters, *, substeps: in
     with Progress(f"simulate {system.name} x {D} draws (rk4)", total=n_steps, unit="steps") as bar:
         for k0 in range(0, n_pad, chunk):
             buf.set_arg(0, memoryview(states[k0]))  # type: ignore[call-arg]
-            buf.set_arg(1, memoryview(inputs[0][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
-            buf.set_arg(2, memoryview(inputs[1][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_arg(1, memoryview(inputs[0][k0 : k0 + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_arg(2, memoryview(inputs[1][k0 : k0 + chunk]))  # type: ignore[call-arg, arg-type]
             if n_ud:
-                buf.set_arg(4, memoryview(inputs[2][k0:k0 + chunk]))  # type: ignore[call-arg, arg-type]
-            buf.set_res(0, memoryview(states[k0 + 1:k0 + chunk + 1]))  # type: ignore[call-arg, arg-type]
+                buf.set_arg(4, memoryview(inputs[2][k0 : k0 + chunk]))  # type: ignore[call-arg, arg-type]
+            buf.set_res(0, memoryview(states[k0 + 1 : k0 + chunk + 1]))  # type: ignore[call-arg, arg-type]
             trigger()
             bar.update(min(chunk, n_steps - k0))
-    out = states[:t.size]
+    out = states[: t.size]
     return out, np.isfinite(out).all(axis=(0, 2))  # type: ignore[return-value]

@@ -140,14 +140,26 @@ class Multisine(Signal):
 
     def __post_init__(self):
         if not (self.period > 0 and 0 <= self.f_min <= self.f_max):
-            raise DataError(expected("Multisine", "period > 0 and 0 <= f_min <= f_max",
-                                     f"period={self.period}, f_min={self.f_min}, f_max={self.f_max}", raw=True))
+            raise DataError(
+                expected(
+                    "Multisine",
+                    "period > 0 and 0 <= f_min <= f_max",
+                    f"period={self.period}, f_min={self.f_min}, f_max={self.f_max}",
+                    raw=True,
+                )
+            )
         k = np.arange(np.ceil(self.f_min * self.period - 1e-9), np.floor(self.f_max * self.period + 1e-9) + 1)
         k = k[k > 0]
         if k.size == 0:
-            raise DataError(expected("Multisine", f"a harmonic of 1/period = {1 / self.period:g} Hz in the band",
-                                     f"[{self.f_min}, {self.f_max}] Hz, which holds none",
-                                     "widen the band or lengthen the period", raw=True))
+            raise DataError(
+                expected(
+                    "Multisine",
+                    f"a harmonic of 1/period = {1 / self.period:g} Hz in the band",
+                    f"[{self.f_min}, {self.f_max}] Hz, which holds none",
+                    "widen the band or lengthen the period",
+                    raw=True,
+                )
+            )
         phases = np.random.default_rng(self.seed).uniform(0.0, 2 * np.pi, k.size)
         object.__setattr__(self, "frequencies", k / self.period)
         object.__setattr__(self, "phases", phases)
@@ -201,8 +213,9 @@ class Chirp(Signal):
         if not self.duration > 0:
             raise DataError(expected("Chirp.duration", "a duration > 0 s", self.duration))
         if self.method == "exponential" and not (self.f0 > 0 and self.f1 > 0):
-            raise DataError(expected("Chirp", "f0 > 0 and f1 > 0 for an exponential sweep",
-                                     f"f0={self.f0}, f1={self.f1}", raw=True))
+            raise DataError(
+                expected("Chirp", "f0 > 0 and f1 > 0 for an exponential sweep", f"f0={self.f0}, f1={self.f1}", raw=True)
+            )
 
     def frequency(self, t):
         """Instantaneous frequency ``phi'(t) / (2 pi)`` in Hz."""
@@ -301,15 +314,23 @@ class Sampled(Signal):
         if t.ndim != 1 or t.size < 2:
             raise DataError(expected("Sampled t", "a 1-D array of at least 2 samples", f"shape {t.shape}", raw=True))
         if values.ndim not in (1, 2) or values.shape[0] != t.size:
-            raise DataError(expected("Sampled values", f"shape ({t.size},) or ({t.size}, n_outputs) to match t",
-                                     f"shape {values.shape}", raw=True))
+            raise DataError(
+                expected(
+                    "Sampled values",
+                    f"shape ({t.size},) or ({t.size}, n_outputs) to match t",
+                    f"shape {values.shape}",
+                    raw=True,
+                )
+            )
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(values))):
-            raise DataError(expected("Sampled", "finite t and values", "NaN/inf samples", "remove or repair them",
-                                     raw=True))
+            raise DataError(
+                expected("Sampled", "finite t and values", "NaN/inf samples", "remove or repair them", raw=True)
+            )
         if np.any(np.diff(t) <= 0):
             i = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
-            raise DataError(expected("Sampled t", "strictly increasing times", f"t = {float(t[i])!r} at row {i}",
-                                     raw=True))
+            raise DataError(
+                expected("Sampled t", "strictly increasing times", f"t = {float(t[i])!r} at row {i}", raw=True)
+            )
         t.setflags(write=False)
         values.setflags(write=False)
         self.t, self.values = t, values
@@ -318,8 +339,10 @@ class Sampled(Signal):
         self._spline = None
 
     def __repr__(self):
-        return (f"Sampled(n_samples={self.t.size}, n_outputs={self.n_outputs}, span=[{self.t[0]}, {self.t[-1]}], "
-                f"kind={self.kind!r})")
+        return (
+            f"Sampled(n_samples={self.t.size}, n_outputs={self.n_outputs}, span=[{self.t[0]}, {self.t[-1]}], "
+            f"kind={self.kind!r})"
+        )
 
     def __call__(self, t):
         t = np.asarray(t, dtype=float)
@@ -367,14 +390,14 @@ class Sampled(Signal):
                 out[rows] = shifted[base[rows].astype(np.int64) % n]
         else:
             for start in range(0, s.size, 256):
-                part = s[start:start + 256]
+                part = s[start : start + 256]
                 k = np.arange(spectrum.shape[0])
                 weight = np.full(k.size, 2.0)
                 weight[0] = 1.0
                 if n % 2 == 0:
                     weight[-1] = 1.0
                 phase = np.exp(2j * np.pi * np.outer(part, k) / n) * weight
-                out[start:start + part.size] = (phase @ spectrum).real / n
+                out[start : start + part.size] = (phase @ spectrum).real / n
         return out.reshape(np.shape(t) + self.values.shape[1:])
 
     def at_nodes(self, t: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -387,8 +410,15 @@ class Sampled(Signal):
 
     def expr(self, t):
         if self.kind == "hold":
-            raise SimulationError(expected("Sampled(kind='hold')", "a fixed-step integrator", "an adaptive one",
-                                           "simulate with method='rk4' (or 'auto')", raw=True))
+            raise SimulationError(
+                expected(
+                    "Sampled(kind='hold')",
+                    "a fixed-step integrator",
+                    "an adaptive one",
+                    "simulate with method='rk4' (or 'auto')",
+                    raw=True,
+                )
+            )
         if self._interp is None:
             data = np.ascontiguousarray(self.values).ravel()  # sample-major, as interpolant expects
             method = "linear" if self.kind == "linear" else "bspline"

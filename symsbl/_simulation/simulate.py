@@ -37,8 +37,9 @@ def time_grid(duration: float, fs: float, t0: float = 0.0) -> np.ndarray:
     """
     n = int(round(duration * fs))
     if n < 1:
-        raise SimulationError(expected("duration * fs", "at least 1 sample interval", f"{duration} s at {fs} Hz",
-                                       raw=True))
+        raise SimulationError(
+            expected("duration * fs", "at least 1 sample interval", f"{duration} s at {fs} Hz", raw=True)
+        )
     return t0 + np.arange(n + 1) / float(fs)
 
 
@@ -57,8 +58,14 @@ def resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
     ):
         arr = np.asarray(inputs, dtype=float)
         if arr.shape[0] != t.size:
-            raise SimulationError(expected("inputs", f"an array sampled on t: shape ({t.size},) or "
-                                           f"({t.size}, {system.n_inputs})", f"shape {arr.shape}", raw=True))
+            raise SimulationError(
+                expected(
+                    "inputs",
+                    f"an array sampled on t: shape ({t.size},) or ({t.size}, {system.n_inputs})",
+                    f"shape {arr.shape}",
+                    raw=True,
+                )
+            )
         signals = [Sampled(t, arr)]
     else:
         signals = list(inputs)
@@ -67,15 +74,27 @@ def resolve_inputs(system: OdeSystem, t: np.ndarray, inputs) -> list[Signal]:
                 raise SimulationError(expected("inputs", "Signals or an array", f"an element {s!r}", raw=True))
     n = sum(s.n_outputs for s in signals)
     if n != system.n_inputs:
-        raise SimulationError(expected("inputs", f"one signal per input of {system.name!r} "
-                                       f"{list(system.input_names)}", f"signals for {n}",
-                                       "use FreeDecay() for a zero input", raw=True))
+        raise SimulationError(
+            expected(
+                "inputs",
+                f"one signal per input of {system.name!r} {list(system.input_names)}",
+                f"signals for {n}",
+                "use FreeDecay() for a zero input",
+                raw=True,
+            )
+        )
     for s in signals:
         if isinstance(s, Sampled) and (t[0] < s.t[0] - 1e-9 * np.ptp(s.t) or t[-1] > s.t[-1] + 1e-9 * np.ptp(s.t)):
-            raise SimulationError(expected("t", f"a grid inside the sampled input's span [{s.t[0]}, {s.t[-1]}]",
-                                           f"[{t[0]}, {t[-1]}]", "shorten t or supply samples covering it", raw=True))
+            raise SimulationError(
+                expected(
+                    "t",
+                    f"a grid inside the sampled input's span [{s.t[0]}, {s.t[-1]}]",
+                    f"[{t[0]}, {t[-1]}]",
+                    "shorten t or supply samples covering it",
+                    raw=True,
+                )
+            )
     return signals
-
 
 
 def _input_samples(signals: list[Signal], t: np.ndarray) -> np.ndarray:
@@ -191,21 +210,31 @@ def simulate(
     Trajectory(4097 samples, 0 to 0.5 s at 8192 Hz, states=['x1', 'x2'], inputs=['F'])
     """
     choice("method", method, ["auto", *METHODS], error=SimulationError)
-    choice("on_divergence", on_divergence, _DIVERGENCE[:2], error=SimulationError) if on_divergence != "return" \
-        else None
+    choice(
+        "on_divergence", on_divergence, _DIVERGENCE[:2], error=SimulationError
+    ) if on_divergence != "return" else None
     choice("jit", jit, _JIT, error=SimulationError)
     if not isinstance(system, OdeSystem):
         raise SimulationError(expected("system", "an OdeSystem", type(system).__name__, raw=True))
     t, _, _ = validate(t, np.empty((np.size(t), 0)))
     x0 = np.zeros(system.n_states) if x0 is None else np.array(x0, dtype=float).ravel()
     if x0.shape != (system.n_states,) or not np.all(np.isfinite(x0)):
-        raise SimulationError(expected("x0", f"{system.n_states} finite values (states {list(system.state_names)})",
-                                       x0))
+        raise SimulationError(
+            expected("x0", f"{system.n_states} finite values (states {list(system.state_names)})", x0)
+        )
     signals = resolve_inputs(system, t, inputs)
     held = any(getattr(sig, "kind", None) == "hold" for sig in signals)  # steps at every sample: fixed steps
     name = method if method != "auto" else ("cvodes" if system.is_continuous and not held else "rk4")
     states, t_fail, reason = METHODS[name](
-        system, t, signals, x0, rtol=rtol, atol=atol, substeps=substeps, chunk_size=chunk_size, jit=jit,
+        system,
+        t,
+        signals,
+        x0,
+        rtol=rtol,
+        atol=atol,
+        substeps=substeps,
+        chunk_size=chunk_size,
+        jit=jit,
         options=options,
     )
     U = _input_samples(signals, t)
@@ -222,10 +251,21 @@ def simulate(
         return Trajectory(t, states, U, names, system.input_names)
     n_good = t.size if bad is None else bad
     if on_divergence == "raise" or n_good < 2:
-        fix = ("pass on_divergence='truncate' to get the trajectory up to that point" if n_good >= 2
-               else "fewer than 2 samples were computed, so there is nothing to return")
+        fix = (
+            "pass on_divergence='truncate' to get the trajectory up to that point"
+            if n_good >= 2
+            else "fewer than 2 samples were computed, so there is nothing to return"
+        )
         if name == "cvodes" and not system.is_continuous:
             fix += "; the right-hand side is discontinuous: use method='rk4' (or 'auto')"
-        raise DivergenceError(expected(f"simulation of {system.name!r} with {name}", "a solution that stays finite",
-                                       f"divergence at t = {t_fail:.6g} s ({reason})", fix, raw=True), t_fail)
+        raise DivergenceError(
+            expected(
+                f"simulation of {system.name!r} with {name}",
+                "a solution that stays finite",
+                f"divergence at t = {t_fail:.6g} s ({reason})",
+                fix,
+                raw=True,
+            ),
+            t_fail,
+        )
     return Trajectory(t[:n_good], states[:n_good], U[:n_good], names, system.input_names, diverged_at=t_fail)

@@ -112,14 +112,18 @@ class Evaluator:
         try:
             Z = np.ascontiguousarray(Z, dtype=np.float64)
         except (TypeError, ValueError):
-            raise LibraryError(expected("Z", f"a numeric array of shape (n_samples, {len(names)})",
-                                        type(Z).__name__, raw=True)) from None
+            raise LibraryError(
+                expected("Z", f"a numeric array of shape (n_samples, {len(names)})", type(Z).__name__, raw=True)
+            ) from None
         if Z.ndim != 2 or Z.shape[1] != len(names):
             fix = "pass one column per variable in that order"
             if Z.ndim == 1 and len(names) == 1:
                 fix += " (reshape a single column with Z.reshape(-1, 1))"
-            raise LibraryError(expected("Z", f"shape (n_samples, {len(names)}) with columns {names}",
-                                        f"shape {Z.shape}", fix, raw=True))
+            raise LibraryError(
+                expected(
+                    "Z", f"shape (n_samples, {len(names)}) with columns {names}", f"shape {Z.shape}", fix, raw=True
+                )
+            )
         return Z
 
     def evaluate(self, Z, out: np.ndarray | None = None) -> np.ndarray:
@@ -149,8 +153,15 @@ class Evaluator:
             or not out.flags.writeable
         ):
             got = f"{out.dtype} array of shape {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__
-            raise LibraryError(expected("out", f"a writeable C-contiguous float64 array of shape {shape}", got,
-                                        "allocate it with np.empty((n_samples, n_terms))", raw=True))
+            raise LibraryError(
+                expected(
+                    "out",
+                    f"a writeable C-contiguous float64 array of shape {shape}",
+                    got,
+                    "allocate it with np.empty((n_samples, n_terms))",
+                    raw=True,
+                )
+            )
         if Z.shape[0]:
             run_chunks(self._mapped, self.chunk_size, [Z], [out])
         return out

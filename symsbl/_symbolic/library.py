@@ -74,8 +74,15 @@ class Term:
     def __post_init__(self):
         expr = ca.SX(self.expr)
         if not expr.is_scalar():
-            raise LibraryError(expected("expr", "a scalar casadi.SX expression", f"shape {expr.shape}",
-                                        "split vector expressions into one term per element", raw=True))
+            raise LibraryError(
+                expected(
+                    "expr",
+                    "a scalar casadi.SX expression",
+                    f"shape {expr.shape}",
+                    "split vector expressions into one term per element",
+                    raw=True,
+                )
+            )
         object.__setattr__(self, "expr", expr)
         if not hasattr(self, "_sympy"):
             object.__setattr__(self, "_sympy", casadi_to_sympy(expr))
@@ -174,8 +181,15 @@ def _rebind(expr: ca.SX, variables: tuple[ca.SX, ...], where: str) -> ca.SX:
     free = ca.symvar(expr)
     unknown = [s.name() for s in free if s.name() not in by_name]
     if unknown:
-        raise LibraryError(expected(where, f"an expression of the variables {list(by_name)}",
-                                    f"one that also uses {unknown}", "declare them as variables", raw=True))
+        raise LibraryError(
+            expected(
+                where,
+                f"an expression of the variables {list(by_name)}",
+                f"one that also uses {unknown}",
+                "declare them as variables",
+                raw=True,
+            )
+        )
     swap = [(s, by_name[s.name()]) for s in free if not ca.is_equal(s, by_name[s.name()])]
     if swap:
         expr = ca.substitute(expr, ca.vertcat(*(a for a, _ in swap)), ca.vertcat(*(b for _, b in swap)))
@@ -234,8 +248,7 @@ class Library:
                 )
             if not t.is_scalar():
                 raise LibraryError(
-                    f"{where}: expected a scalar expression, received shape {t.shape}; "
-                    "pass one term per element"
+                    f"{where}: expected a scalar expression, received shape {t.shape}; pass one term per element"
                 )
             raw.append((i, _rebind(t, self._variables, where)))
         converted = casadi_to_sympy([e for _, e in raw]) if raw else []

@@ -54,11 +54,32 @@ def _min_max(fun):
 
 #: Functions a term may call, by the name sympy prints, and their CasADi counterparts.
 FUNCTIONS = {
-    "sin": ca.sin, "cos": ca.cos, "tan": ca.tan, "asin": ca.asin, "acos": ca.acos, "atan": ca.atan,
-    "sinh": ca.sinh, "cosh": ca.cosh, "tanh": ca.tanh, "asinh": ca.asinh, "acosh": ca.acosh,
-    "atanh": ca.atanh, "exp": ca.exp, "log": ca.log, "sqrt": ca.sqrt, "Abs": ca.fabs, "abs": ca.fabs,
-    "sign": ca.sign, "floor": ca.floor, "ceiling": ca.ceil, "erf": ca.erf, "atan2": ca.atan2,
-    "Min": _min_max(ca.fmin), "Max": _min_max(ca.fmax), "Eq": ca.eq, "Ne": ca.ne,
+    "sin": ca.sin,
+    "cos": ca.cos,
+    "tan": ca.tan,
+    "asin": ca.asin,
+    "acos": ca.acos,
+    "atan": ca.atan,
+    "sinh": ca.sinh,
+    "cosh": ca.cosh,
+    "tanh": ca.tanh,
+    "asinh": ca.asinh,
+    "acosh": ca.acosh,
+    "atanh": ca.atanh,
+    "exp": ca.exp,
+    "log": ca.log,
+    "sqrt": ca.sqrt,
+    "Abs": ca.fabs,
+    "abs": ca.fabs,
+    "sign": ca.sign,
+    "floor": ca.floor,
+    "ceiling": ca.ceil,
+    "erf": ca.erf,
+    "atan2": ca.atan2,
+    "Min": _min_max(ca.fmin),
+    "Max": _min_max(ca.fmax),
+    "Eq": ca.eq,
+    "Ne": ca.ne,
 }
 _ARITY = {"atan2": 2, "Eq": 2, "Ne": 2, "Min": None, "Max": None}
 _CONSTANTS = {"pi": 3.141592653589793, "E": 2.718281828459045, "True": 1.0, "False": 0.0}
@@ -125,8 +146,15 @@ class _Parser:
     def nested(self, rule):
         self.depth += 1
         if self.depth > MAX_DEPTH:
-            raise ExpressionError(expected(self.where, f"at most {MAX_DEPTH} levels of nesting", "deeper text",
-                                           "simplify the expression", raw=True))
+            raise ExpressionError(
+                expected(
+                    self.where,
+                    f"at most {MAX_DEPTH} levels of nesting",
+                    "deeper text",
+                    "simplify the expression",
+                    raw=True,
+                )
+            )
         try:
             return rule()
         finally:
@@ -141,8 +169,15 @@ class _Parser:
             why = f"holds the constant {float(value)!r}"
         else:
             return value
-        raise ExpressionError(expected(self.where, "a term that is finite where its variables are",
-                                       f"{self.text!r}, which {why}", "correct or remove the term", raw=True))
+        raise ExpressionError(
+            expected(
+                self.where,
+                "a term that is finite where its variables are",
+                f"{self.text!r}, which {why}",
+                "correct or remove the term",
+                raw=True,
+            )
+        )
 
     # -- grammar ------------------------------------------------------------------------------
     def parse(self) -> ca.SX:
@@ -341,5 +376,8 @@ def parse_expression(text: str, symbols: Mapping[str, ca.SX], *, where: str = "e
     try:
         return _Parser(text, symbols, where).parse()
     except RecursionError:  # a guard behind MAX_DEPTH, for a caller already deep in its own stack
-        raise ExpressionError(expected(where, f"at most {MAX_DEPTH} levels of nesting", "deeper text",
-                                       "simplify the expression", raw=True)) from None
+        raise ExpressionError(
+            expected(
+                where, f"at most {MAX_DEPTH} levels of nesting", "deeper text", "simplify the expression", raw=True
+            )
+        ) from None

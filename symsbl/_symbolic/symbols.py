@@ -83,6 +83,7 @@ _LOGICAL = {
     ca.OP_OR: sp.Or,
 }
 
+
 def symbols(names: str | Sequence[str]) -> tuple[ca.SX, ...]:
     """Create scalar CasADi SX symbols.
 
@@ -163,9 +164,7 @@ def _flatten(expr) -> tuple[list[ca.SX], bool]:
         return [sx[i] for i in range(sx.numel())], sx.is_scalar()
     if isinstance(expr, Sequence):
         return [_scalar(e, f"expr[{i}]") for i, e in enumerate(expr)], False
-    raise LibraryError(
-        f"expr: expected a casadi.SX expression or a list of them, received {type(expr).__name__}"
-    )
+    raise LibraryError(f"expr: expected a casadi.SX expression or a list of them, received {type(expr).__name__}")
 
 
 def _scalar(e, where: str) -> ca.SX:
@@ -246,9 +245,15 @@ def casadi_to_sympy(expr, symbols: Mapping[str, sp.Symbol] | None = None):
             cond, value = _as_bool(work[args[0]]), _as_number(work[args[1]])
             work[res[0]] = sp.Piecewise((value, cond), (sp.Integer(0), True))
         else:
-            raise LibraryError(expected(
-                "expr", "operations with a sympy counterpart", f"the CasADi operation {_OP_NAMES.get(op, op)}",
-                "rewrite the term with elementary functions, powers, sign, fabs, fmin/fmax or if_else", raw=True))
+            raise LibraryError(
+                expected(
+                    "expr",
+                    "operations with a sympy counterpart",
+                    f"the CasADi operation {_OP_NAMES.get(op, op)}",
+                    "rewrite the term with elementary functions, powers, sign, fabs, fmin/fmax or if_else",
+                    raw=True,
+                )
+            )
     return out[0] if scalar else out
 
 
@@ -257,14 +262,37 @@ def _min_max(fun):
 
 
 _SYMPY_FUNCTIONS = {
-    sp.sin: ca.sin, sp.cos: ca.cos, sp.tan: ca.tan, sp.asin: ca.asin, sp.acos: ca.acos,
-    sp.atan: ca.atan, sp.sinh: ca.sinh, sp.cosh: ca.cosh, sp.tanh: ca.tanh, sp.asinh: ca.asinh,
-    sp.acosh: ca.acosh, sp.atanh: ca.atanh, sp.exp: ca.exp, sp.log: ca.log, sp.sign: ca.sign,
-    sp.Abs: ca.fabs, sp.floor: ca.floor, sp.ceiling: ca.ceil, sp.erf: ca.erf, sp.atan2: ca.atan2,
-    sp.Min: _min_max(ca.fmin), sp.Max: _min_max(ca.fmax),
-    sp.StrictLessThan: ca.lt, sp.LessThan: ca.le, sp.StrictGreaterThan: ca.gt,
-    sp.GreaterThan: ca.ge, sp.Eq: ca.eq, sp.Ne: ca.ne,
-    sp.And: _min_max(ca.logic_and), sp.Or: _min_max(ca.logic_or), sp.Not: ca.logic_not,
+    sp.sin: ca.sin,
+    sp.cos: ca.cos,
+    sp.tan: ca.tan,
+    sp.asin: ca.asin,
+    sp.acos: ca.acos,
+    sp.atan: ca.atan,
+    sp.sinh: ca.sinh,
+    sp.cosh: ca.cosh,
+    sp.tanh: ca.tanh,
+    sp.asinh: ca.asinh,
+    sp.acosh: ca.acosh,
+    sp.atanh: ca.atanh,
+    sp.exp: ca.exp,
+    sp.log: ca.log,
+    sp.sign: ca.sign,
+    sp.Abs: ca.fabs,
+    sp.floor: ca.floor,
+    sp.ceiling: ca.ceil,
+    sp.erf: ca.erf,
+    sp.atan2: ca.atan2,
+    sp.Min: _min_max(ca.fmin),
+    sp.Max: _min_max(ca.fmax),
+    sp.StrictLessThan: ca.lt,
+    sp.LessThan: ca.le,
+    sp.StrictGreaterThan: ca.gt,
+    sp.GreaterThan: ca.ge,
+    sp.Eq: ca.eq,
+    sp.Ne: ca.ne,
+    sp.And: _min_max(ca.logic_and),
+    sp.Or: _min_max(ca.logic_or),
+    sp.Not: ca.logic_not,
 }
 
 
@@ -318,8 +346,14 @@ def sympy_to_casadi(expr: sp.Expr, symbols: Mapping[str, ca.SX]) -> ca.SX:
     """
     if not isinstance(expr, sp.Basic):
         # Text would go through sympy's parser, which evaluates Python: refuse it.
-        raise LibraryError(expected("expr", "a sympy expression (parse text with symsbl's model files or --base)",
-                                    type(expr).__name__, raw=True))
+        raise LibraryError(
+            expected(
+                "expr",
+                "a sympy expression (parse text with symsbl's model files or --base)",
+                type(expr).__name__,
+                raw=True,
+            )
+        )
     cache: dict[sp.Basic, ca.SX] = {}
 
     def convert(e: sp.Basic) -> ca.SX:
@@ -327,8 +361,14 @@ def sympy_to_casadi(expr: sp.Expr, symbols: Mapping[str, ca.SX]) -> ca.SX:
             return cache[e]
         if e.is_Symbol:
             if e.name not in symbols:
-                raise LibraryError(expected("expr", f"symbols among the declared variables {sorted(symbols)}",
-                                            e.name, "declare it or rename it"))
+                raise LibraryError(
+                    expected(
+                        "expr",
+                        f"symbols among the declared variables {sorted(symbols)}",
+                        e.name,
+                        "declare it or rename it",
+                    )
+                )
             out = ca.SX(symbols[e.name])
         elif e is sp.true or e is sp.false:
             out = ca.SX(1.0 if e is sp.true else 0.0)
@@ -348,8 +388,9 @@ def sympy_to_casadi(expr: sp.Expr, symbols: Mapping[str, ca.SX]) -> ca.SX:
             out = _SYMPY_FUNCTIONS[e.func](*(convert(a) for a in e.args))
         else:
             supported = ", ".join(["Add", "Mul", "Pow", "Piecewise"] + sorted(f.__name__ for f in _SYMPY_FUNCTIONS))
-            raise LibraryError(expected("expr", f"functions with a CasADi counterpart ({supported})",
-                                        e.func.__name__, raw=True))
+            raise LibraryError(
+                expected("expr", f"functions with a CasADi counterpart ({supported})", e.func.__name__, raw=True)
+            )
         cache[e] = out
         return out
 

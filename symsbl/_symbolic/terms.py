@@ -43,10 +43,15 @@ MAX_CANDIDATES = 5000
 def _check_size(n_terms: int, what: str) -> None:
     if n_terms > MAX_CANDIDATES:
         gram = 8 * n_terms**2 / 2**30
-        raise LibraryError(expected(
-            "degree", f"a library of at most {MAX_CANDIDATES} candidate terms",
-            f"{n_terms} terms ({what}; their Gram matrix alone would take {gram:.3g} GiB)",
-            "lower the degree or use fewer variables", raw=True))
+        raise LibraryError(
+            expected(
+                "degree",
+                f"a library of at most {MAX_CANDIDATES} candidate terms",
+                f"{n_terms} terms ({what}; their Gram matrix alone would take {gram:.3g} GiB)",
+                "lower the degree or use fewer variables",
+                raw=True,
+            )
+        )
 
 
 def _monomials(z: Sequence[ca.SX], degree: int, include_bias: bool) -> list[ca.SX]:

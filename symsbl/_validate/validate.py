@@ -161,8 +161,14 @@ MAX_BAND_DRAWS, BAND_MEMORY = 10_000, 2 * 2**30
 def _input_signal(traj: Trajectory, model: IdentifiedModel, interpolation: str):
     missing = [n for n in model.input_names if n not in traj.input_names]
     if missing:
-        raise DataError(expected("data", f"the model's inputs {list(model.input_names)}",
-                                 f"inputs {list(traj.input_names)} (missing {missing})", raw=True))
+        raise DataError(
+            expected(
+                "data",
+                f"the model's inputs {list(model.input_names)}",
+                f"inputs {list(traj.input_names)} (missing {missing})",
+                raw=True,
+            )
+        )
     if not model.input_names:
         return None
     U = np.column_stack([traj.column(n) for n in model.input_names])
@@ -181,19 +187,35 @@ def _check(model, data, n_band) -> tuple[str, ...]:
     n_cols = len(model.state_names) + sum(o.state is None for o in model.observation)
     most = int(min(MAX_BAND_DRAWS, BAND_MEMORY // (24 * max(data.n_samples, 1) * n_cols)))
     if n_band > most:
-        raise DataError(expected("n_band", f"at most {most} Monte Carlo draws for {data.n_samples} samples of "
-                                 f"{n_cols} channels ({BAND_MEMORY / 2**30:g} GiB held at once)", n_band,
-                                 "100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %"))
+        raise DataError(
+            expected(
+                "n_band",
+                f"at most {most} Monte Carlo draws for {data.n_samples} samples of "
+                f"{n_cols} channels ({BAND_MEMORY / 2**30:g} GiB held at once)",
+                n_band,
+                "100 draws give the 3-sigma band to about 7 %, 1000 to about 2 %",
+            )
+        )
     predicted = list(model.state_names) + [o.name for o in model.observation if o.state is None]
     observed = tuple(n for n in predicted if n in data.state_names)
     here = state_outputs([n for n in model.state_names if n in data.state_names]) + tuple(
-        o for o in model.observation if o.state is None and o.name in data.state_names)
+        o for o in model.observation if o.state is None and o.name in data.state_names
+    )
     unstarted = [n for n in latent_of(model.state_names, here, model.kinematics) if n not in model.latent_names]
     if unstarted or not observed:
-        note = " (a member of a position-velocity pair may be missing when another, or its acceleration, is there)" \
-            if model.kinematics else ""
-        raise DataError(expected("data", f"the model's channels {predicted}{note}",
-                                 f"columns {list(data.state_names)} (missing {unstarted or predicted})", raw=True))
+        note = (
+            " (a member of a position-velocity pair may be missing when another, or its acceleration, is there)"
+            if model.kinematics
+            else ""
+        )
+        raise DataError(
+            expected(
+                "data",
+                f"the model's channels {predicted}{note}",
+                f"columns {list(data.state_names)} (missing {unstarted or predicted})",
+                raw=True,
+            )
+        )
     bad = [f"{eq.lhs}: {t.name}" for eq in model.equations for t in eq.terms if not np.isfinite(t.coef)]
     if bad:
         raise DataError(expected("model", "finite coefficients", f"non-finite ones for {bad}", raw=True))
@@ -201,8 +223,9 @@ def _check(model, data, n_band) -> tuple[str, ...]:
     return observed
 
 
-def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str,
-                   substeps: int) -> tuple[np.ndarray, int | None]:
+def _initial_state(
+    model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str, substeps: int
+) -> tuple[np.ndarray, int | None]:
     """The start of the re-simulation: the first sample (a member of a kinematic pair the record lacks
     reconstructed from the others, a latent state zero) or, ``how="fit"``, the state that best explains the
     first stretch of the ``observed`` channels; and the samples in which a state error grows 10^4-fold."""
@@ -214,8 +237,9 @@ def _initial_state(model: IdentifiedModel, data: Trajectory, observed, how: str,
         return x0, None
 
     length = _fitted(model, "segment_length", lambda v: isinstance(v, int) and v > 0, data.n_samples)
-    return fitted_start(model, data, observed, x0, interpolation=interpolation, substeps=substeps,
-                        length=min(length, 8192))
+    return fitted_start(
+        model, data, observed, x0, interpolation=interpolation, substeps=substeps, length=min(length, 8192)
+    )
 
 
 def _settings(model: IdentifiedModel, interpolation, substeps) -> tuple[str, int]:
@@ -315,14 +339,25 @@ def validate_model(
         sim = simulate(system, data.t, **kw)
     except DivergenceError as exc:  # within the first step: the first two samples stand for the response
         first = np.concatenate([x0, system.evaluate_outputs(x0[None, :], _inputs_at(data, model)[:1])[0]])
-        sim = Trajectory(data.t[:2], np.vstack([first, first]), None, model.state_names + system.output_names,
-                         diverged_at=exc.diverged_at)
+        sim = Trajectory(
+            data.t[:2],
+            np.vstack([first, first]),
+            None,
+            model.state_names + system.output_names,
+            diverged_at=exc.diverged_at,
+        )
     n = sim.n_samples
     diverged = getattr(sim, "diverged_at", None)
     if diverged is not None or n < data.n_samples:
         at = diverged if diverged is not None else float(data.t[n])
         return Validation(
-            data, sim, {s: math.inf for s in observed}, {s: -math.inf for s in observed}, at, None, "diverged",
+            data,
+            sim,
+            {s: math.inf for s in observed},
+            {s: -math.inf for s in observed},
+            at,
+            None,
+            "diverged",
             f"the identified model diverged in simulation at t = {at:.6g} s "
             f"(of {data.t[-1] - data.t[0]:.6g} s); it is unstable on this input.",
         )
@@ -336,30 +371,38 @@ def validate_model(
         noise = {s: levels[s] for s in observed}
     result = Validation(data, sim, err, fit, None, band, "ok", "", noise, draws)
     if reach is not None and reach < data.n_samples:  # hypersensitive here: judged over short horizons
-        X = short_horizons(model, data, observed, interpolation=interpolation, substeps=substeps,
-                           length=max(reach // 4, 16))
+        X = short_horizons(
+            model, data, observed, interpolation=interpolation, substeps=substeps, length=max(reach // 4, 16)
+        )
         columns = np.column_stack([X, system.evaluate_outputs(X, _inputs_at(data, model))])
         names = model.state_names + system.output_names
         pieces = columns[:, [names.index(n) for n in observed]]
         X = np.column_stack([data.column(n) for n in observed])
-        result = dataclasses.replace(result, horizon=float(reach * data.dt),
-                                     short_nrmse=dict(zip(observed, map(float, nrmse(X, pieces)))))
+        result = dataclasses.replace(
+            result, horizon=float(reach * data.dt), short_nrmse=dict(zip(observed, map(float, nrmse(X, pieces))))
+        )
     return dataclasses.replace(result, message=_message(result, n_band))
 
 
 def _message(result, n_band: int) -> str:
     coverage = result.coverage or {}
-    lines = [f"{k}: NRMSE {100 * v:.3g} %, fit {result.fit[k]:.2f} %"
-             + (f", {100 * coverage[k]:.1f} % of samples inside the 3-sigma predictive band" if k in coverage else "")
-             for k, v in result.nrmse.items()]
+    lines = [
+        f"{k}: NRMSE {100 * v:.3g} %, fit {result.fit[k]:.2f} %"
+        + (f", {100 * coverage[k]:.1f} % of samples inside the 3-sigma predictive band" if k in coverage else "")
+        for k, v in result.nrmse.items()
+    ]
     if result.horizon is not None:
-        lines.append(f"hypersensitive record (chaotic-like): the model amplifies a state error 10^4-fold within "
-                     f"{result.horizon:.3g} s, so one simulation of the whole record says nothing of it; over "
-                     f"stretches of {result.horizon / 4:.3g} s, each from its fitted initial state: "
-                     + ", ".join(f"{k}: NRMSE {100 * v:.3g} %" for k, v in result.short_nrmse.items()))
+        lines.append(
+            f"hypersensitive record (chaotic-like): the model amplifies a state error 10^4-fold within "
+            f"{result.horizon:.3g} s, so one simulation of the whole record says nothing of it; over "
+            f"stretches of {result.horizon / 4:.3g} s, each from its fitted initial state: "
+            + ", ".join(f"{k}: NRMSE {100 * v:.3g} %" for k, v in result.short_nrmse.items())
+        )
     if n_band and result.band_draws < n_band:
-        lines.append(f"the band uses {result.band_draws} of {n_band} posterior draws; the others diverged in "
-                     "simulation" + ("" if result.band is not None else ", too many to draw a band"))
+        lines.append(
+            f"the band uses {result.band_draws} of {n_band} posterior draws; the others diverged in "
+            "simulation" + ("" if result.band is not None else ", too many to draw a band")
+        )
     return "\n".join(lines)
 
 
@@ -380,8 +423,13 @@ def _band(model, system, data, kw, n_band, seed):
         if system.outputs and runs.shape[1]:  # each draw's outputs at its own coefficients
             U = _inputs_at(data, model)
             kept = draws[finite]
-            runs = np.concatenate([runs, np.stack([system.evaluate_outputs(runs[:, d], U, kept[d])
-                                                   for d in range(runs.shape[1])], axis=1)], axis=2)
+            runs = np.concatenate(
+                [
+                    runs,
+                    np.stack([system.evaluate_outputs(runs[:, d], U, kept[d]) for d in range(runs.shape[1])], axis=1),
+                ],
+                axis=2,
+            )
     else:
         loop = _band_loop(system, data, kw, draws)
         runs = np.stack(loop, axis=1) if loop else np.empty((data.n_samples, 0, n_cols))
