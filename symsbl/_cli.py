@@ -436,11 +436,10 @@ def _cmd_discrepancy(args) -> int:
                 raw=True,
             )
         )
-    from ._derivatives.kinematics import parse_kinematics
-
-    velocities = tuple(v for _, v in parse_kinematics(args.kinematics, states)) if args.kinematics else ()
-    traj = _read(args, args.data, states, inputs, optional=velocities)  # displacement only: velocities estimated
-    heldout = _read(args, args.held_out, states, inputs, optional=velocities) if args.held_out else None
+    # displacement or acceleration only: the pairs' other states estimated
+    columns, optional = states + _accelerations(states, args.kinematics), _unmeasured_allowed(states, args.kinematics)
+    traj = _read(args, args.data, columns, inputs, optional=optional)
+    heldout = _read(args, args.held_out, columns, inputs, optional=optional) if args.held_out else None
     report = discrepancy(
         traj,
         args.base,

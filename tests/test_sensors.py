@@ -175,6 +175,48 @@ def test_an_accelerometer_alone_identifies_coulomb_friction():
 
 
 @pytest.mark.slow
+def test_the_discrepancy_workflow_names_friction_hidden_from_an_accelerometer(tmp_path, capsys):
+    """The acceleration alone, a base model without the Coulomb friction: the workflow names it, its force within
+    1 % of the truth, every coefficient within 1 %, the held-out acceleration within 1.25x the noise (the samples
+    at a reversal jump); from the command line the same."""
+    train, _ = ro.accelerometer_record(ro.COULOMB, 1)
+    held, _ = ro.accelerometer_record(ro.COULOMB, 2, rms=3.0)
+    base = "x: v; v: F, x, v, x**3"
+    report = symsbl.discrepancy(train, base, heldout=held, kinematics="x:v:a", rule=symsbl.DecisionRule(n_bootstrap=0))
+    assert [a.effect for a in report.added] == ["coulomb_friction"], report.verdict
+    assert report.added[0].physical == pytest.approx(ro.COULOMB.fc, rel=0.01)
+    eq, truth = report.final.equation("v"), ro.COULOMB.truth()
+    assert sorted(eq.names) == sorted(truth), str(report.final)
+    assert max(abs(e) for e in _errors(eq, truth).values()) < 0.01, _errors(eq, truth)
+    assert report.final.output_names == ("a",) and report.steps[-1].decision == "nothing missing"
+    assert report.steps[-1].error_heldout < 1.25 * NOISE < 10 * NOISE < report.steps[0].error_heldout
+    for name, record in (("train", train), ("held", held)):
+        symsbl.write_trajectory(record, tmp_path / f"{name}.csv")
+    code, out, err = _cli(
+        [
+            "discrepancy",
+            str(tmp_path / "train.csv"),
+            "--held-out",
+            str(tmp_path / "held.csv"),
+            "--states",
+            "x,v",
+            "--inputs",
+            "F",
+            "--kinematics",
+            "x:v:a",
+            "--base",
+            base,
+            "--json",
+            str(tmp_path / "report.json"),
+        ],
+        capsys,
+    )
+    assert code == 0, err
+    doc = json.loads((tmp_path / "report.json").read_text())
+    assert [a["effect"] for a in doc["added"]] == ["coulomb_friction"] and "a: measures v'" in out
+
+
+@pytest.mark.slow
 def test_two_accelerometers_identify_a_chain_with_a_cubic_spring():
     """Two masses in a chain, a cubic spring from the ground to the first, accelerometers on both: the exact terms of
     both velocity equations (35 candidates each) within 1 %, held-out accelerations at the noise floor."""

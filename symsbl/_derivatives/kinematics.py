@@ -29,6 +29,7 @@ __all__ = [
     "latent_states",
     "complete_states",
     "with_velocities",
+    "sensor_states",
     "integrate",
     "band_edges",
     "completed_columns",
@@ -141,6 +142,29 @@ def with_velocities(names: Sequence[str], spec) -> tuple[str, ...]:
     """
     extra = {x: v for x, v in _pairs(spec) if x in names and v not in names}
     return tuple(n for name in names for n in ((name, extra[name]) if name in extra else (name,)))
+
+
+def sensor_states(columns: Sequence[str], spec) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The states of a model whose records hold the ``columns`` and the accelerations they measure ``{velocity:
+    column}``: each declared pair in full, in the place of its first member among the columns (position,
+    velocity or acceleration), the other columns as they are.
+
+    Examples
+    --------
+    >>> sensor_states(["a", "z"], "x:v:a")
+    (('x', 'v', 'z'), {'v': 'a'})
+    >>> sensor_states(["y1", "y2"], "y1:v1")
+    (('y1', 'v1', 'y2'), {})
+    """
+    entries = _entries(spec)
+    member = {n: e for e in entries for n in e}
+    out: list[str] = []
+    for name in columns:
+        for n in member[name][:2] if name in member else (name,):
+            if n not in out:
+                out.append(n)
+    measured = set(columns)
+    return tuple(out), {e[1]: e[2] for e in entries if len(e) == 3 and e[2] in measured}
 
 
 def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:

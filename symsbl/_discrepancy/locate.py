@@ -81,11 +81,11 @@ def _error_profile(model, heldout, measure, measured):
     if measure != "simulation":
         return [], []
     sim = validate_model(model, heldout, method="rk4").simulated
-    states = [n for n in model.state_names if measured is None or n in measured]
-    meas = np.column_stack([heldout.column(n) for n in states])[: sim.n_samples]
+    channels = [n for n in sim.state_names if (measured is None or n in measured) and n in heldout.state_names]
+    meas = np.column_stack([heldout.column(n) for n in channels])[: sim.n_samples]
     segments = np.array_split(np.arange(sim.n_samples), 10)
     scale = np.std(meas, axis=0)
-    simulated = sim.states[:, [model.state_names.index(n) for n in states]]
+    simulated = np.column_stack([sim.column(n) for n in channels])
     err = [float(np.mean(np.sqrt(np.mean((meas[s] - simulated[s]) ** 2, axis=0)) / scale)) for s in segments]
     mids = [float(heldout.t[s].mean()) for s in segments]
     return mids, err

@@ -40,9 +40,10 @@ from .._base.checks import Constraint, check_params
 from .._base.errors import DataError, LibraryError, expected
 from .._data.residuals import effective_fraction
 from .._data.trajectory import Trajectory, noise_levels
-from .._derivatives.kinematics import complete_states, parse_kinematics, with_velocities
+from .._derivatives.kinematics import complete_states, parse_kinematics, sensor_states
 from .._derivatives.registry import get_differentiator
-from .._model import Equation
+from .._model import AccelerationOutput, Equation
+from .._model.outputs import state_outputs
 from .._refine.diagnostics import residual_tests
 from .._refine.engine import Settings
 from .._symbolic.symbols import casadi_to_sympy
@@ -150,6 +151,8 @@ def discrepancy(
         are candidates too. A velocity of a pair that ``data`` and ``heldout`` do not hold is unmeasured
         (displacement only): it is estimated from its position for the equation-error start
         (:func:`symsbl._derivatives.kinematics.estimate_velocity`) and the output error fits the measured states alone.
+        A third name, ``"x:v:a"``, is a column measuring ``v'`` (an accelerometer): the pair's states are then
+        integrated from it for the start and the output error fits the measured acceleration.
     evidence : {"output-error", "equation-error"}, optional
         How effects are scored: the Laplace evidence of the output-error fit of every record
         (default with ``error="simulation"``), or the RVM evidence of the weak-form equation error of
@@ -209,18 +212,18 @@ def discrepancy(
     if heldout is None:
         data, heldout = split_record(data)
     check_record(heldout, "heldout", names)
-    data, heldout, states, measured = _complete_records(data, heldout, kinematics, evidence)
+    data, heldout, states, measured, accelerations = _complete_records(data, heldout, kinematics, evidence)
     if isinstance(base, str):
-        base = parse_base(base, data.state_names, data.input_names)
-    if not isinstance(base, dict) or set(base) != set(data.state_names):
+        base = parse_base(base, states, data.input_names)
+    if not isinstance(base, dict) or set(base) != set(states):
         got = sorted(base) if isinstance(base, dict) else type(base).__name__
-        raise LibraryError(expected("base", f"terms for exactly the states {list(data.state_names)}", got))
-    pairs = parse_kinematics(kinematics, data.state_names)
+        raise LibraryError(expected("base", f"terms for exactly the states {list(states)}", got))
+    pairs = parse_kinematics(kinematics, states)
     if displacement is not None and velocity is not None and not pairs:
         pairs = ((displacement, velocity),)
     x, v = displacement or (pairs[0][0] if pairs else None), velocity or (pairs[0][1] if pairs else None)
-    run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured)
-    start = run.design.model(run.structure, data)
+    run = Workflow(data, heldout, base, effects, x, v, derivative, error, measured, accelerations)
+    start = run.design.model(run.structure, run.view)
     notes = []
     if evidence == "output-error":
         run.use_output_error(start, pairs, search_library)
@@ -244,10 +247,11 @@ def discrepancy(
 
 
 def _complete_records(data, heldout, kinematics, evidence):
-    """The records with every declared velocity (estimated when unmeasured), the states and the measured ones."""
-    states = with_velocities(data.state_names, kinematics)
+    """The records with every state of the declared pairs (estimated when unmeasured) then their measured
+    accelerations, the states, the measured channels and the accelerations ``{velocity: column}``."""
     measured = tuple(data.state_names)
-    if states != measured:  # displacement only: the velocities of the declared pairs estimated for the start
+    states, accelerations = sensor_states(measured, kinematics)
+    if states != measured:  # displacement or acceleration only: the pairs' states estimated for the start
         if evidence != "output-error":
             raise DataError(
                 expected(
@@ -258,8 +262,10 @@ def _complete_records(data, heldout, kinematics, evidence):
                     raw=True,
                 )
             )
-        (data, heldout), _ = complete_states([data, heldout], states, parse_kinematics(kinematics, states))
-    return data, heldout, states, measured
+        pairs = parse_kinematics(kinematics, states)
+        keep = tuple(accelerations.values())
+        (data, heldout), _ = complete_states([data, heldout], states, pairs, accelerations, keep=keep)
+    return data, heldout, states, measured, accelerations
 
 
 def _iterate(run, start, evidence, rule, max_iterations, seed):
@@ -359,14 +365,22 @@ def _ending(step) -> str:
 class Workflow:
     """The state of one discrepancy run: the records, the design and the current structure."""
 
-    def __init__(self, data, heldout, base, effects, displacement, velocity, derivative, error, measured=None):
+    def __init__(
+        self, data, heldout, base, effects, displacement, velocity, derivative, error, measured=None, accelerations=None
+    ):
         self.data, self.heldout, self.error, self.effects = data, heldout, error, tuple(effects)
-        #: The states the records measure (an unmeasured velocity's column is estimated for the start).
+        #: The channels the records measure (an unmeasured state's column is estimated for the start).
         self.measured = tuple(data.state_names) if measured is None else tuple(measured)
-        self.x, self.v = _pair(base, data.state_names, displacement, velocity)
-        states = tuple(ca.SX.sym(n) for n in data.state_names)
+        #: ``{velocity: column}``: the accelerometers among them, carried after the states in the records.
+        self.accelerations = dict(accelerations or {})
+        carried = set(self.accelerations.values())
+        #: The training record's states, what the design regresses.
+        self.view = data.with_states([n for n in data.state_names if n not in carried]) if carried else data
+        view = self.view
+        self.x, self.v = _pair(base, view.state_names, displacement, velocity)
+        states = tuple(ca.SX.sym(n) for n in view.state_names)
         inputs = tuple(ca.SX.sym(n) for n in data.input_names)
-        sym = dict(zip(data.state_names, states))
+        sym = dict(zip(view.state_names, states))
         x_amp = float(np.max(np.abs(data.column(self.x)))) if self.x else 1.0
         x_sym = sym[self.x] if self.x else ca.SX.sym("_unused")
         variants = [
@@ -376,7 +390,7 @@ class Workflow:
         ]
         variants = [w for w in variants if self.x or not any(ca.depends_on(e, x_sym) for e in w.exprs)]
         n_terms = len(variants) + sum(map(len, base.values()))
-        diff = get_differentiator(derivative).resolve(data.t, data.states, n_terms=n_terms)
+        diff = get_differentiator(derivative).resolve(view.t, view.states, n_terms=n_terms)
         self.design = Design(base, variants, states, inputs, diff)
         self.structure = {s: [self.design.column(e) for e in terms] for s, terms in base.items()}
         for s, cols in self.structure.items():
@@ -398,8 +412,15 @@ class Workflow:
         self.added_keys: set = set()  # (effect, where) of what the search has added
 
     def err(self, model, traj) -> float:
-        """The held-out error measure of ``model`` on ``traj`` (over the measured states)."""
-        return heldout_error(model, traj, self.error, self.design, self.v, self.measured)
+        """The held-out error measure of ``model`` on ``traj`` (over the measured channels)."""
+        return heldout_error(model, self.observed(traj), self.error, self.design, self.v, self.measured)
+
+    def observed(self, traj: Trajectory) -> Trajectory:
+        """``traj`` as a model with accelerometers is validated on it: the measured channels alone (the states
+        estimated from an accelerometer are not measurements); other records as they are."""
+        if not self.accelerations:
+            return traj
+        return traj.with_states([n for n in traj.state_names if n in self.measured])
 
     def use_output_error(self, start, pairs, search_library: bool) -> None:
         """Prepare the output-error search from the equation-error fit ``start`` of the base structure: every
@@ -414,6 +435,12 @@ class Workflow:
             for eq in start.equations
         )
         self.structure_model = dataclasses.replace(start, equations=equations, kinematics=found)
+        if self.accelerations:  # the accelerometers read the velocity equations' right-hand sides
+            states = tuple(m for m in self.measured if m in symbols)
+            sensors = tuple(AccelerationOutput(a, v) for v, a in self.accelerations.items())
+            self.structure_model = dataclasses.replace(
+                self.structure_model, measured=states, outputs=state_outputs(states) + sensors
+            )
         self.pairs = pairs_of(base_exprs, symbols, found)
         if not self.pairs:
             raise DataError(
@@ -439,7 +466,9 @@ class Workflow:
     def where(self, model):
         """Where ``model`` disagrees with the records (the first pair)."""
         self.design.weight = 1.0
-        return locate(model, self.data, self.heldout, self.design, self.x, self.v, self.error, self.measured)
+        return locate(
+            model, self.data, self.observed(self.heldout), self.design, self.x, self.v, self.error, self.measured
+        )
 
     def residual_ratio(self, scorer: Scorer) -> float:
         """The largest residual standard deviation over the measured noise level, per record and state."""
