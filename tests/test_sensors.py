@@ -217,6 +217,21 @@ def test_the_discrepancy_workflow_names_friction_hidden_from_an_accelerometer(tm
 
 
 @pytest.mark.slow
+def test_the_discrepancy_workflow_finds_two_effects_hidden_from_an_accelerometer():
+    """Friction and the cubic spring both missing from the base: each is named in turn, the final model exact."""
+    train, _ = ro.accelerometer_record(ro.COULOMB, 1)
+    held, _ = ro.accelerometer_record(ro.COULOMB, 2, rms=3.0)
+    report = symsbl.discrepancy(
+        train, "x: v; v: F, x, v", heldout=held, kinematics="x:v:a", rule=symsbl.DecisionRule(n_bootstrap=0)
+    )
+    assert sorted(a.effect for a in report.added) == ["coulomb_friction", "cubic_stiffness"], report.verdict
+    eq, truth = report.final.equation("v"), ro.COULOMB.truth()
+    assert sorted(eq.names) == sorted(truth), str(report.final)
+    assert max(abs(e) for e in _errors(eq, truth).values()) < 0.01, _errors(eq, truth)
+    assert report.steps[-1].decision == "nothing missing"
+
+
+@pytest.mark.slow
 def test_two_accelerometers_identify_a_chain_with_a_cubic_spring():
     """Two masses in a chain, a cubic spring from the ground to the first, accelerometers on both: the exact terms of
     both velocity equations (35 candidates each) within 1 %, held-out accelerations at the noise floor."""
