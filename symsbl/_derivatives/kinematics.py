@@ -28,7 +28,6 @@ __all__ = [
     "estimate_velocity",
     "latent_states",
     "complete_states",
-    "with_velocities",
     "sensor_states",
     "integrate",
     "band_edges",
@@ -131,19 +130,6 @@ def kinematic_triples(spec, states: Sequence[str]) -> tuple[tuple[str, str, str 
     return tuple(out)
 
 
-def with_velocities(names: Sequence[str], spec) -> tuple[str, ...]:
-    """``names`` with the velocity of each declared pair that they lack placed after its position: the states of
-    a model whose records hold only the positions.
-
-    Examples
-    --------
-    >>> with_velocities(["y1", "y2", "z"], "y1:v1,y2:v2")
-    ('y1', 'v1', 'y2', 'v2', 'z')
-    """
-    extra = {x: v for x, v in _pairs(spec) if x in names and v not in names}
-    return tuple(n for name in names for n in ((name, extra[name]) if name in extra else (name,)))
-
-
 def sensor_states(columns: Sequence[str], spec) -> tuple[tuple[str, ...], dict[str, str]]:
     """The states of a model whose records hold the ``columns`` and the accelerations they measure ``{velocity:
     column}``: each declared pair in full, in the place of its first member among the columns (position,
@@ -212,10 +198,9 @@ def latent_states(names: Sequence[str], measured: Sequence[str], pairs, accelera
     member (its position, its velocity, or the acceleration column of ``accelerations``, ``{velocity:
     column}``): latent, with a law of their own that no record holds (see :mod:`symsbl._latent`)."""
     observed = set(measured)
-    measured_columns = set(measured)
     acc = dict(accelerations)
     for x, v in pairs:
-        if x in measured_columns or v in measured_columns or acc.get(v) in measured_columns:
+        if x in measured or v in measured or acc.get(v) in measured:
             observed |= {x, v}
     return tuple(n for n in names if n not in observed)
 

@@ -115,11 +115,6 @@ class IdentifiedModel:
         return tuple(u.name() for u in self.inputs)
 
     @property
-    def state_equations(self) -> tuple[Equation, ...]:
-        """The equations of the states' derivatives, one per state, in state order."""
-        return tuple(eq for eq in self.equations if not eq.algebraic)
-
-    @property
     def observation(self) -> tuple[Output, ...]:
         """What each channel of the records is: :attr:`outputs`, or the measured states as they are."""
         return self.outputs if self.outputs else state_outputs(self.measured_names)
