@@ -345,6 +345,8 @@ def _diagnosis(model) -> list[str]:
     chosen = model.path.chosen if len(model.path) else None
     if chosen is not None and chosen.source != "evidence":
         lines.append(f"structure chosen from the model path ({chosen.source}): {model.path.rule}")
+    if refine.get("beyond_library"):
+        lines.append(f"library: {refine['beyond_library']}")
     return lines
 
 

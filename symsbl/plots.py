@@ -295,7 +295,8 @@ def coefficient_uncertainty(model: IdentifiedModel):
 
 def model_path_figure(model: IdentifiedModel):
     """The model path of an identification: cross-validated free-run error and penalised evidence against the
-    number of terms (the Pareto front of error against size), the chosen structure marked; and the residual
+    number of terms (the Pareto front of error against size), the chosen structure marked, one row of panels per
+    path (per equation where each has its own); and the residual
     tests of the reported model (Ljung-Box p-value of each channel's innovations, and the largest
     cross-correlation with each input against its threshold).
 
@@ -329,36 +330,16 @@ def model_path_figure(model: IdentifiedModel):
                 raw=True,
             )
         )
-    fig = new_figure(figsize=(11.0, 3.8), layout="constrained")
-    from matplotlib.ticker import MaxNLocator  # matplotlib is there: new_figure checked it
-
-    ax_cv, ax_ev, ax_res = fig.subplots(1, 3)
-    for ax in (ax_cv, ax_ev):
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    entries = list(model.path)
-    sizes = np.array([e.n_terms for e in entries])
-    cv = np.array([100 * e.cv_error for e in entries])
-    se = np.array([100 * e.cv_se if np.isfinite(e.cv_se) else 0.0 for e in entries])
-    finite = np.isfinite(cv)
-    ax_cv.errorbar(sizes[finite], cv[finite], yerr=se[finite], fmt="o", color=MEASURED, ms=4, capsize=2)
-    chosen = [k for k, e in enumerate(entries) if e.chosen]
-    for k in chosen:
-        if finite[k]:
-            ax_cv.plot(sizes[k], cv[k], "o", ms=10, mfc="none", mec=MODEL, mew=2, label="chosen")
-    ax_cv.set_yscale("log")
-    ax_cv.set_xlabel("free terms")
-    ax_cv.set_ylabel("cross-validated free-run error (%)")
-    ax_cv.set_title("model path")
-    if chosen:
-        ax_cv.legend(frameon=False, fontsize=8, loc="upper center")
-    objective = np.array([e.objective for e in entries])
-    ax_ev.plot(sizes, objective - np.max(objective), "s", color=PRIOR, ms=4)
-    for k in chosen:
-        ax_ev.plot(sizes[k], objective[k] - np.max(objective), "s", ms=10, mfc="none", mec=MODEL, mew=2)
-    ax_ev.set_xlabel("free terms")
-    ax_ev.set_ylabel("penalised log evidence - best (nats)")
-    ax_ev.set_yscale("symlog")
-    ax_ev.set_title("evidence")
+    groups: dict = {}  # one path per set of equations fitted together: a path per equation gets its own panels
+    for e in model.path:
+        groups.setdefault(tuple(lhs for lhs, _ in e.terms), []).append(e)
+    fig = new_figure(figsize=(11.0, 3.8 * len(groups)), layout="constrained")
+    grid = fig.add_gridspec(len(groups), 3)
+    for row, (lhs, entries) in enumerate(groups.items()):
+        ax_cv, ax_ev = fig.add_subplot(grid[row, 0]), fig.add_subplot(grid[row, 1])
+        which = " of " + ", ".join(f"{name}'" for name in lhs) if len(groups) > 1 else ""
+        _path_panels(ax_cv, ax_ev, entries, which, legend=row == 0)
+    ax_res = fig.add_subplot(grid[:, 2])
     tests = model.metadata.get("refine", {}).get("residual", [])
     labels, values = [], []
     for t in tests:
@@ -379,3 +360,35 @@ def model_path_figure(model: IdentifiedModel):
         ax_res.set_xlabel("statistic / its 99 % threshold")
     ax_res.set_title("residual tests")
     return fig
+
+
+def _path_panels(ax_cv, ax_ev, entries: list, which: str, legend: bool) -> None:
+    """One model path: cross-validated error and penalised evidence against the number of terms, the chosen
+    structure ringed once."""
+    from matplotlib.ticker import MaxNLocator  # matplotlib is there: new_figure checked it
+
+    for ax in (ax_cv, ax_ev):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    sizes = np.array([e.n_terms for e in entries])
+    cv = np.array([100 * e.cv_error for e in entries])
+    se = np.array([100 * e.cv_se if np.isfinite(e.cv_se) else 0.0 for e in entries])
+    finite = np.isfinite(cv)
+    ax_cv.errorbar(sizes[finite], cv[finite], yerr=se[finite], fmt="o", color=MEASURED, ms=4, capsize=2)
+    chosen = [k for k, e in enumerate(entries) if e.chosen][:1]
+    for k in chosen:
+        if finite[k]:
+            ax_cv.plot(sizes[k], cv[k], "o", ms=10, mfc="none", mec=MODEL, mew=2, label="chosen")
+    ax_cv.set_yscale("log")
+    ax_cv.set_xlabel("free terms")
+    ax_cv.set_ylabel("cross-validated free-run error (%)")
+    ax_cv.set_title(f"model path{which}")
+    if chosen and legend:
+        ax_cv.legend(frameon=False, fontsize=8, loc="upper center")
+    objective = np.array([e.objective for e in entries])
+    ax_ev.plot(sizes, objective - np.max(objective), "s", color=PRIOR, ms=4)
+    for k in chosen:
+        ax_ev.plot(sizes[k], objective[k] - np.max(objective), "s", ms=10, mfc="none", mec=MODEL, mew=2)
+    ax_ev.set_xlabel("free terms")
+    ax_ev.set_ylabel("penalised log evidence - best (nats)")
+    ax_ev.set_yscale("symlog")
+    ax_ev.set_title(f"evidence{which}")

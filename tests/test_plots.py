@@ -263,3 +263,37 @@ def test_discrepancy_figure_errors(friction_case):
         DataError, match=exactly("heldout: expected a Trajectory (the held-out record), received ndarray")
     ):
         plots.discrepancy_figure(report, held.states)
+
+
+def test_model_path_figure_draws_one_row_per_equation_and_rings_each_choice_once(duffing_case):
+    """Two equations each with its own path (the equation error's, per equation): a row of panels for each,
+    titled by its left-hand side, each path's points where they belong, the chosen structure ringed once per
+    path and labelled once in the figure; the residual tests span the rows."""
+    _, model, _ = duffing_case
+    E = symsbl.PathEntry
+    path = symsbl.ModelPath(
+        (
+            E((("v1", ("x1",)),), 1, -90.0, -95.0, 0.30, 0.02, "path"),
+            E((("v1", ("x1", "F")),), 2, -50.0, -60.0, 0.05, 0.0, "equation error", chosen=True),
+            E((("v2", ("x2",)),), 1, -80.0, -85.0, 0.20, 0.0, "path", chosen=True),
+            E((("v2", ("x2", "F")),), 2, -79.0, -89.0, 0.21, 0.01, "equation error"),
+            E((("v2", ("x2", "F", "x1")),), 3, -78.0, -93.0, 0.22, 0.01, "path"),
+        ),
+        "rule",
+    )
+    fig = plots.model_path_figure(dataclasses.replace(model, path=path))
+    cv1, ev1, cv2, ev2, res = fig.axes
+    assert [ax.get_title() for ax in (cv1, ev1, cv2, ev2)] == [
+        "model path of v1'",
+        "evidence of v1'",
+        "model path of v2'",
+        "evidence of v2'",
+    ]
+    points = cv2.lines[0].get_data() if cv2.lines else None
+    np.testing.assert_allclose(points[0], [1, 2, 3])
+    np.testing.assert_allclose(points[1], [20.0, 21.0, 22.0])
+    for ax, size in ((cv1, 2), (cv2, 1), (ev1, 2), (ev2, 1)):  # the ring: once, at the chosen size
+        assert [line.get_data()[0][0] for line in ax.lines if line.get_markersize() == 10] == [size]
+    labels = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+    assert labels == ["chosen"]
+    assert res.get_title() == "residual tests"

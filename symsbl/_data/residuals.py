@@ -23,6 +23,7 @@ __all__ = [
     "residual_test",
     "prewhitening",
     "innovations",
+    "past_removed",
     "LEVEL",
 ]
 
@@ -214,24 +215,57 @@ def innovations(r: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 
 def residual_test(
-    channel: str, e: np.ndarray, inputs: dict, lags: int = 25, n_params: int = 0, family: int = 1
+    channel: str,
+    e: np.ndarray,
+    inputs: dict,
+    lags: int = 25,
+    n_params: int = 0,
+    family: int = 1,
+    loop: tuple | None = None,
 ) -> ResidualTest:
     """Whiteness of the residual ``e`` and its independence of each input in ``inputs`` (name -> samples aligned
     with ``e``), at the family-wise level :data:`LEVEL` (Sidak over each test's lags, and over ``family``
     tests of the same kind: the channels times the inputs). Each input and the residual are first filtered by
-    the input's prewhitening filter (:func:`prewhitening`)."""
+    the input's prewhitening filter (:func:`prewhitening`). The feedback test runs on ``loop`` (a residual and
+    its inputs where only noise and a loop can show, e.g. their parts that do not repeat from period to period:
+    a model's error under a periodic input repeats) when given, else on ``e`` and ``inputs``, after the
+    residual's part that the past and present input explain is removed (:func:`past_removed`)."""
     from scipy import stats
 
+    loop_e, loop_inputs = (e, inputs) if loop is None else loop
     _, p = ljung_box(e, lags, n_params)
     z = float(stats.norm.isf((1.0 - (1.0 - LEVEL) ** (1.0 / ((lags + 1) * max(family, 1)))) / 2.0))
     inside, feedback = {}, {}
     for name, u in inputs.items():
         a = prewhitening(u)
         rho, band = cross_correlation(innovations(e, a[1:]), innovations(u, a[1:]), lags)
-        ratio = np.abs(rho) / (z * band)
-        inside[name] = float(np.max(ratio[lags:]))
-        feedback[name] = float(np.max(ratio[: lags - SPLINE_LAGS]))
+        inside[name] = float(np.max(np.abs(rho[lags:]) / (z * band[lags:])))
+    for name, u in loop_inputs.items():
+        a = prewhitening(u)
+        uf = innovations(u, a[1:])
+        rho, band = cross_correlation(past_removed(innovations(loop_e, a[1:]), uf, PAST * lags), uf, lags)
+        feedback[name] = float(np.max(np.abs(rho[: lags - SPLINE_LAGS]) / (z * band[: lags - SPLINE_LAGS])))
     return ResidualTest(channel, int(e.size), p, inside, feedback, lags, predictable(e, lags))
+
+
+#: The feedback test first removes from the residual what this many times its lags of the past and present
+#: input explain (the Sims form of the test): a model error the input drives over longer than the lags, under
+#: an input the prewhitening filter does not whiten (a multisine of many lines), otherwise correlates with the
+#: future input as a loop would.
+PAST = 4
+
+
+def past_removed(e: np.ndarray, u: np.ndarray, order: int) -> np.ndarray:
+    """``e`` less its least-squares fit on ``u_{t-k}``, ``k = 0 .. order`` (the first ``order`` samples set to
+    the mean, which leaves the correlation's sums at every lag to the rest)."""
+    n = e.size
+    if n <= 4 * (order + 1):
+        return e
+    X = np.column_stack([u[order - k : n - k] for k in range(order + 1)])
+    coef, *_ = np.linalg.lstsq(X, e[order:], rcond=None)
+    out = np.full(n, float(np.mean(e)))
+    out[order:] = e[order:] - X @ coef
+    return out
 
 
 def predictable(e: np.ndarray, lags: int = 25) -> float:

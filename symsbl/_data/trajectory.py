@@ -379,21 +379,6 @@ def noise_levels(traj: Trajectory) -> dict[str, float]:
     return {name: third_difference_std(traj.column(name)) for name in list(traj.state_names) + list(traj.input_names)}
 
 
-def spectral_noise_std(x: np.ndarray) -> float:
-    """White-noise standard deviation of a sampled signal from the upper half of its band (above a quarter of the
-    sampling rate, where a record sampled with an anti-aliasing margin holds only noise): the median of the
-    periodogram there, Hann-windowed against the leakage of a record that is not periodic, ``median |X_k|^2 =
-    sigma^2 ln 2 sum w^2`` for white noise, robust to a few lines of signal."""
-    x = np.asarray(x, dtype=float)
-    x = x[np.isfinite(x)]
-    if x.size < 16:
-        return 0.0
-    w = np.hanning(x.size)
-    power = np.abs(np.fft.rfft((x - x.mean()) * w)) ** 2
-    upper = power[power.size // 2 : -1]
-    return float(math.sqrt(np.median(upper) / (math.log(2.0) * float(w @ w))))
-
-
 def third_difference_std(x: np.ndarray) -> float:
     """White-noise standard deviation of a sampled signal from its third differences (see :func:`noise_levels`):
     ``std(diff(x, 3)) = sqrt(20) sigma``, the standard deviation taken robustly (median absolute deviation)."""

@@ -17,21 +17,24 @@ of the fits (0 % under measurement noise). :func:`doubts` lists what says the li
 
 - the innovations are not white (Ljung-Box, :data:`symsbl._data.residuals.LEVEL`) while independent of the
   inputs (a residual the inputs explain is a missing term, which the selection is there to find);
-- an input depends on past residuals (feedback);
-- a measured input carries noise (its periodogram above a quarter of the sampling rate) above
-  :data:`INPUT_NOISE` of the outputs' smallest relative noise (errors in variables).
+- an input depends on past residuals (feedback): on a record whose inputs are periodic, between periods (a
+  model's error under a periodic input repeats, and a multisine's many lines correlate with it at every lag),
+  elsewhere after what the past input explains of the residual is removed;
+- a measured input carries noise above :data:`INPUT_NOISE` of the outputs' smallest relative noise (errors in
+  variables), each signal's noise told from its excitation where it can be
+  (:func:`symsbl._data.excitation.noise_std`: between periods of a periodic record, in the bands the excitation
+  leaves quiet).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._base.blas import one_blas_thread
+from .._data.excitation import aperiodic_part, period, relative_noise
 from .._data.residuals import ResidualTest, residual_test
-from .._data.trajectory import spectral_noise_std
 from .noise import innovations
 
 __all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
@@ -67,22 +70,34 @@ def _tests(engine, sol) -> list[ResidualTest]:
     scale = np.sqrt(passes.per_record(sol.w))[seg.record_of_segment]
     spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
+    R_loop, U_loop, periodic = _aperiodic(passes.records, R, U)
     out = []
     for c, name in enumerate(engine.measured):
-        es, us = [], []
+        es: list[np.ndarray] = []
+        us: list[np.ndarray] = []
+        loop_es: list[np.ndarray] = []
+        loop_us: list[np.ndarray] = []
         for k, (a, b) in enumerate(zip(seg.starts, ends)):
             if b - a <= p + 2 * LAGS:
                 continue
-            e = (innovations(R[a:b, c], noise.ar[c]) if p else R[a:b, c]) * scale[k, c]
-            keep = np.isfinite(e)
-            es.append(e[keep])
-            us.append(U[a + p : b][keep] * u_scale[k])
+            # the residual between periods is noise, not modelled: the noise model, fitted to a residual that
+            # holds the model's error, would colour it
+            raw = periodic[seg.record_of_segment[k]]
+            for r, x, ex, ux, whiten in ((R, U, es, us, True), (R_loop, U_loop, loop_es, loop_us, not raw)):
+                e = (innovations(r[a:b, c], noise.ar[c]) if p and whiten else r[a + p : b, c]) * scale[k, c]
+                keep = np.isfinite(e)
+                ex.append(e[keep])
+                ux.append(x[a + p : b][keep] * u_scale[k])
         if not es:
             continue
         e, u = np.concatenate(es), np.concatenate(us)
-        if e.size <= 4 * LAGS:
+        loop_e, loop_u = np.concatenate(loop_es), np.concatenate(loop_us)
+        if e.size <= 4 * LAGS or loop_e.size <= 4 * LAGS:
             continue
-        inputs = {m: u[:, k] for k, m in enumerate(engine.model.input_names) if np.std(u[:, k]) > 0}
+        names = engine.model.input_names
+        inputs = {m: u[:, k] for k, m in enumerate(names) if np.std(u[:, k]) > 0}
+        # an input that repeats exactly from period to period has nothing a loop could feed back into
+        loop_inputs = {m: loop_u[:, k] for k, m in enumerate(names) if np.std(loop_u[:, k]) > EXACT * np.std(u[:, k])}
         out.append(
             residual_test(
                 name,
@@ -90,10 +105,37 @@ def _tests(engine, sol) -> list[ResidualTest]:
                 inputs,
                 LAGS,
                 int(np.count_nonzero(noise.ar[c])) if p else 0,
-                family=len(engine.measured) * max(len(engine.model.input_names), 1),
+                family=len(engine.measured) * max(len(names), 1),
+                loop=(loop_e, loop_inputs),
             )
         )
     return out
+
+
+#: An input whose change from period to period is below this share of its spread repeats exactly (a record
+#: simulated, or a generator's output logged without noise).
+EXACT = 1e-9
+
+
+def _aperiodic(records, R: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The residual ``R`` and the inputs ``U`` where only noise and a loop can show: in each record whose inputs
+    are periodic (:func:`symsbl._data.excitation.period`), their parts that do not repeat from period to period
+    (a model's error under a periodic input repeats, the noise does not, nor what a loop feeds back of it; a
+    transient that has not passed colours the residual's part, which the test's band allows for), over all but
+    the last whole period (:func:`symsbl._data.excitation.aperiodic_part`), the rest left out (NaN); elsewhere
+    the residual and the inputs as they are. Also whether each record is periodic."""
+    R_loop, U_loop = R.copy(), U.astype(float, copy=True)
+    periodic = np.zeros(len(records.starts), dtype=bool)
+    for i, (a, m) in enumerate(zip(records.starts, records.lengths)):
+        L = period(U[a : a + m]) if U.shape[1] else None
+        if L is None:
+            continue
+        periodic[i] = True
+        whole = (m // L - 1) * L
+        R_loop[a : a + whole] = aperiodic_part(R[a : a + m], L)
+        U_loop[a : a + whole] = aperiodic_part(U[a : a + m], L)
+        R_loop[a + whole : a + m] = np.nan
+    return R_loop, U_loop, periodic
 
 
 def as_record(t: ResidualTest) -> dict:
@@ -110,14 +152,6 @@ def as_record(t: ResidualTest) -> dict:
         "open_loop": t.open_loop,
         "predictable": float(t.predictable),
     }
-
-
-def _relative_noise(values: list[np.ndarray]) -> float:
-    """The white-noise standard deviation of a column over its spread, pooled over the records."""
-    spread = float(np.std(np.concatenate(values)))
-    sizes = np.array([v.size for v in values], dtype=float)
-    var = float(np.sum(sizes * np.array([spectral_noise_std(v) ** 2 for v in values])) / max(sizes.sum(), 1.0))
-    return math.sqrt(var) / spread if spread > 0 else 0.0
 
 
 @dataclass(frozen=True)
@@ -142,11 +176,12 @@ class Doubts:
 def noisy_inputs(records, measured, inputs) -> tuple[str, ...]:
     """The measured inputs of ``records`` whose white-noise level exceeds :data:`INPUT_NOISE` of the ``measured``
     outputs' smallest (errors in variables), one line each: a property of the data, not of a fit."""
-    outputs = [_relative_noise([r.column(m) for r in records]) for m in measured]
+    periods = [period(r.inputs) if r.inputs.size else None for r in records]
+    outputs = [relative_noise([r.column(m) for r in records], periods) for m in measured]
     floor = min((o for o in outputs if o > 0), default=0.0)
     reasons = []
     for name in inputs:
-        level = _relative_noise([r.column(name) for r in records])
+        level = relative_noise([r.column(name) for r in records], periods)
         if floor > 0 and level > INPUT_NOISE * floor:
             reasons.append(
                 f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "

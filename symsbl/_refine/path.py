@@ -18,7 +18,7 @@ import numpy as np
 
 from .._base.errors import SimulationError
 from .._base.rule import SelectionRule, mean_errors, paired_se
-from .._data.trajectory import third_difference_std
+from .._data.excitation import period, relative_noise
 from .._model import IdentifiedModel, ModelPath, PathEntry
 from .candidates import prior
 from .crossval import cross_validate, folds
@@ -29,7 +29,7 @@ from .result import to_model
 from .selection import _every_term_clears
 from .solver import Solution
 
-__all__ = ["choose_structure", "MAX_PATH"]
+__all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND"]
 
 #: Backward elimination steps at most.
 MAX_PATH = 12
@@ -74,16 +74,40 @@ def _backward(engine: Engine, sol, alpha: np.ndarray):
 
 
 def _noise_floor(passes) -> float:
-    """The cross-validated error of a perfect model: each measured channel's noise (third differences) relative
-    to its spread, averaged over the channels, as the folds' errors are."""
-    n = passes.records.n_total
-    Y, valid = passes.records.Y, passes.valid[:n]
-    levels = []
-    for c in range(Y.shape[1]):
-        y = Y[valid[:, c], c]
-        spread = float(np.std(y))
-        levels.append(third_difference_std(y) / spread if spread > 0 else 0.0)
+    """The cross-validated error of a perfect model: each measured channel's noise relative to its spread, told
+    from the excitation (:func:`symsbl._data.excitation.noise_std`: between periods, in the quiet bands; the
+    third differences read a band that reaches a third of the sampling rate as noise), averaged over the
+    channels, as the folds' errors are."""
+    records = passes.records
+    n = records.n_total
+    Y, valid, U = records.Y, passes.valid[:n], passes.UN[:n]
+    spans = list(zip(records.starts, records.lengths))
+    periods = [period(U[a : a + m]) if U.shape[1] else None for a, m in spans]
+    levels = [
+        relative_noise([np.where(valid[a : a + m, c], Y[a : a + m, c], np.nan) for a, m in spans], periods)
+        for c in range(Y.shape[1])
+    ]
     return float(np.mean(levels)) if levels else 0.0
+
+
+#: A chosen structure whose cross-validated error exceeds this many times the noise floor leaves more than noise.
+BEYOND = 3.0
+
+
+def beyond_library(mean: np.ndarray, chosen: int, floor: float) -> str | None:
+    """What the model path says of the library when the chosen structure's cross-validated error ``mean[chosen]``
+    stays above :data:`BEYOND` times the noise ``floor`` (all relative errors): one line, or None. The
+    structures on the path differ by terms the library offers; if none comes near the floor, no term does what
+    the law needs (or the record holds a disturbance the noise floor does not, which the doubts name)."""
+    if floor <= 0 or not np.isfinite(mean[chosen]) or mean[chosen] <= BEYOND * floor:
+        return None
+    best = float(np.min(mean[np.isfinite(mean)]))
+    return (
+        f"the chosen structure leaves {100 * mean[chosen]:.3g} % cross-validated error, "
+        f"{mean[chosen] / floor:.2g} times the noise floor ({100 * floor:.2g} %), and the best on the path "
+        f"{100 * best:.3g} %: the library does not seem to hold the law (its terms each buy little), "
+        "the model is an approximation within the training range"
+    )
 
 
 def _positions(engine: Engine, model: IdentifiedModel) -> list[int]:
@@ -212,8 +236,10 @@ def choose_structure(
     sizes = [int(sol.active.size) for sol, _, _ in entries]
     objectives = [float(sol.posterior.log_evidence) - cost * n for (sol, _, _), n in zip(entries, sizes)]
     E = np.array([e for _, _, e in entries])
-    chosen, reason = rule.choose(sizes, objectives, E, floor=_noise_floor(engine.passes))
+    floor = _noise_floor(engine.passes)
+    chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
     mean = mean_errors(E)
+    lacking = beyond_library(mean, chosen, floor)
     best = int(np.argmin(mean))
     path = ModelPath(
         tuple(
@@ -233,7 +259,8 @@ def choose_structure(
     )
     sol = entries[chosen][0]
     if entries[chosen][1] == "evidence":
-        return dataclasses.replace(refined, path=path)
+        meta = dict(refined.metadata.get("refine", {}), noise_floor=floor, beyond_library=lacking)
+        return dataclasses.replace(refined, path=path, metadata={**refined.metadata, "refine": meta})
     sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
     meta = dict(refined.metadata.get("refine", {}))
     meta.update(
@@ -244,5 +271,7 @@ def choose_structure(
         effective_fraction=round(residual_fraction(engine, sol), 4),
         residual=[as_record(t) for t in residual_tests(engine, sol)],
         chosen_by=reason,
+        noise_floor=floor,
+        beyond_library=lacking,
     )
     return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
