@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from ._base.errors import DataError, LibraryError, ParameterError, SymsblError, expected
+from ._data.residuals import LEVEL
 from ._outcome import EXIT_CODES, run_command
 from ._outcome import fail as _fail
 from ._refine.problem import INTERPOLATIONS
@@ -332,6 +333,11 @@ def _diagnosis(model) -> list[str]:
             lines.append(
                 f"residual test of {t['channel']}: "
                 + ("" if t["white"] else f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g}) ")
+                + (
+                    "over a white noise between periods (the model's error, not a disturbance) "
+                    if not t["white"] and (t.get("noise_p") or 0.0) >= LEVEL
+                    else ""
+                )
                 + " ".join(f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1)
                 + " ".join(f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1)
             )

@@ -8,6 +8,8 @@ the Nyquist rate leaves no quiet band, and only the difference of periods tells 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.signal import lfilter
@@ -164,3 +166,29 @@ def test_noise_on_a_measured_input_is_flagged_by_its_level_not_by_the_excitation
     for name in ("x", "v"):
         y = record.column(name)
         assert noise_std(y, L) / y.std() == pytest.approx(0.005, rel=0.15)
+
+
+def test_the_period_of_an_oversampled_multisine_is_its_own_not_a_neighbour():
+    """Lines 2-30 Hz at 1 kHz: the autocorrelation at 999 samples is within 1 % of its peak at 1000."""
+    t = np.arange(5000) / 1000.0
+    rng = np.random.default_rng(5)
+    u = sum(np.cos(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi)) for f in range(2, 31))
+    assert period(u) == 1000
+
+
+def test_a_law_outside_the_library_is_not_taken_for_a_disturbance_on_a_periodic_record():
+    """The stand-in with a cubic-polynomial library (it holds neither the saturation nor x|x|), 0.05 % force
+    noise: the innovations are not white (the model's error), but the noise between periods is (Ljung-Box of
+    the measured outputs' non-repeating part), so no doubt is raised, no loop is read, the output error's model
+    is reported, and the library is said not to hold the law (cross-validated error over 3 times the noise
+    floor). Before, the whiteness doubt refitted on short segments and reported the equation error's model."""
+    x, v, F = symsbl.symbols("x v F")
+    record = _saturating_record(0.0005)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = symsbl.identify(record, symsbl.polynomial([x, v], 3) + symsbl.inputs([F]), kinematics={"x": "v"})
+    info = model.metadata["refine"]
+    assert info["doubts"] == [] and model.metadata["estimator"]["used"] == "output-error"
+    for t in info["residual"]:
+        assert not t["white"] and t["noise_p"] >= 0.01 and t["open_loop"], t
+    assert info["beyond_library"] and info["noise_floor"] == pytest.approx(0.005, rel=0.15)

@@ -83,9 +83,9 @@ def period(columns: np.ndarray, min_cycles: int = 2) -> int | None:
 
     The candidate is the lag, past the first zero of the columns' pooled autocorrelation, where the
     autocorrelation (per overlapping sample) is largest, taken at its smallest multiple that comes within 1 %
-    of it; the record is periodic when the difference of two periods holds at most :data:`REPEAT` of the
-    columns' variance and each column's change between periods is at most :data:`QUIET` times the noise of its quiet
-    bands.
+    of it (at the peak there); the record is periodic when the difference of two periods holds at most
+    :data:`REPEAT` of the columns' variance and each column's change between periods is at most :data:`QUIET`
+    times the noise of its quiet bands.
 
     Examples
     --------
@@ -120,6 +120,8 @@ def period(columns: np.ndarray, min_cycles: int = 2) -> int | None:
     if best <= 0:
         return None
     L = int(lags[np.flatnonzero(r[lags] >= best - 0.01)[0]])
+    while L < last and r[L + 1] > r[L]:  # a smooth record's neighbours of its period come within 1 % too
+        L += 1
     d = X[L:] - X[:-L]
     if float(np.mean(d**2)) / 2.0 > REPEAT:
         return None

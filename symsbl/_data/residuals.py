@@ -142,6 +142,10 @@ class ResidualTest:
     predictable : float
         The share of the residual's variance its own past ``lags`` samples predict (least squares; about
         ``lags / n_samples`` for white noise): how much a whiteness failure matters.
+    noise_p : float
+        Ljung-Box p-value of the channel's noise alone where the record tells it from the response (its
+        measured part that does not repeat from period to period under periodic inputs); NaN elsewhere. A
+        residual that is not white while this noise is, is the model's error, not a disturbance.
     """
 
     channel: str
@@ -151,10 +155,16 @@ class ResidualTest:
     feedback_ratio: dict
     lags: int
     predictable: float = 0.0
+    noise_p: float = float("nan")
 
     @property
     def white(self) -> bool:
         return self.whiteness_p >= LEVEL
+
+    @property
+    def noise_white(self) -> bool:
+        """The channel's noise, told from the response between periods, is white (False where not told)."""
+        return bool(self.noise_p >= LEVEL)
 
     @property
     def independent(self) -> bool:

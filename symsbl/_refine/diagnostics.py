@@ -16,7 +16,9 @@ only and 2-12 under process or input noise, where the innovations' Ljung-Box tes
 of the fits (0 % under measurement noise). :func:`doubts` lists what says the likelihood does not hold:
 
 - the innovations are not white (Ljung-Box, :data:`symsbl._data.residuals.LEVEL`) while independent of the
-  inputs (a residual the inputs explain is a missing term, which the selection is there to find);
+  inputs (a residual the inputs explain is a missing term, which the selection is there to find) and, where
+  the inputs are periodic, the measured noise between periods is not white either (a residual coloured over
+  white noise is the model's error repeating with the excitation, not a disturbance);
 - an input depends on past residuals (feedback): on a record whose inputs are periodic, between periods (a
   model's error under a periodic input repeats, and a multisine's many lines correlate with it at every lag),
   elsewhere after what the past input explains of the residual is removed;
@@ -28,13 +30,14 @@ of the fits (0 % under measurement noise). :func:`doubts` lists what says the li
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from .._base.blas import one_blas_thread
 from .._data.excitation import aperiodic_part, period, relative_noise
-from .._data.residuals import ResidualTest, residual_test
+from .._data.residuals import ResidualTest, ljung_box, residual_test
 from .noise import innovations
 
 __all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
@@ -71,6 +74,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
     spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
     R_loop, U_loop, periodic = _aperiodic(passes.records, R, U)
+    Y_noise = _aperiodic(passes.records, np.full(R.shape, np.nan), U, passes.records.Y)[0]
     out = []
     for c, name in enumerate(engine.measured):
         es: list[np.ndarray] = []
@@ -98,17 +102,19 @@ def _tests(engine, sol) -> list[ResidualTest]:
         inputs = {m: u[:, k] for k, m in enumerate(names) if np.std(u[:, k]) > 0}
         # an input that repeats exactly from period to period has nothing a loop could feed back into
         loop_inputs = {m: loop_u[:, k] for k, m in enumerate(names) if np.std(loop_u[:, k]) > EXACT * np.std(u[:, k])}
-        out.append(
-            residual_test(
-                name,
-                e,
-                inputs,
-                LAGS,
-                int(np.count_nonzero(noise.ar[c])) if p else 0,
-                family=len(engine.measured) * max(len(names), 1),
-                loop=(loop_e, loop_inputs),
-            )
+        test = residual_test(
+            name,
+            e,
+            inputs,
+            LAGS,
+            int(np.count_nonzero(noise.ar[c])) if p else 0,
+            family=len(engine.measured) * max(len(names), 1),
+            loop=(loop_e, loop_inputs),
         )
+        between = Y_noise[:, c][np.isfinite(Y_noise[:, c])]
+        if between.size > 4 * LAGS:
+            test = dataclasses.replace(test, noise_p=ljung_box(between, LAGS)[1])
+        out.append(test)
     return out
 
 
@@ -117,13 +123,17 @@ def _tests(engine, sol) -> list[ResidualTest]:
 EXACT = 1e-9
 
 
-def _aperiodic(records, R: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _aperiodic(
+    records, R: np.ndarray, U: np.ndarray, Y: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The residual ``R`` and the inputs ``U`` where only noise and a loop can show: in each record whose inputs
     are periodic (:func:`symsbl._data.excitation.period`), their parts that do not repeat from period to period
     (a model's error under a periodic input repeats, the noise does not, nor what a loop feeds back of it; a
     transient that has not passed colours the residual's part, which the test's band allows for), over all but
     the last whole period (:func:`symsbl._data.excitation.aperiodic_part`), the rest left out (NaN); elsewhere
-    the residual and the inputs as they are. Also whether each record is periodic."""
+    the residual and the inputs as they are. Also whether each record is periodic. With ``Y`` (the measured
+    outputs), their non-repeating parts in place of the residual's: the noise alone, once the transient has
+    passed (NaN where the inputs are not periodic)."""
     R_loop, U_loop = R.copy(), U.astype(float, copy=True)
     periodic = np.zeros(len(records.starts), dtype=bool)
     for i, (a, m) in enumerate(zip(records.starts, records.lengths)):
@@ -132,7 +142,7 @@ def _aperiodic(records, R: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.nd
             continue
         periodic[i] = True
         whole = (m // L - 1) * L
-        R_loop[a : a + whole] = aperiodic_part(R[a : a + m], L)
+        R_loop[a : a + whole] = aperiodic_part((R if Y is None else Y)[a : a + m], L)
         U_loop[a : a + whole] = aperiodic_part(U[a : a + m], L)
         R_loop[a + whole : a + m] = np.nan
     return R_loop, U_loop, periodic
@@ -151,6 +161,7 @@ def as_record(t: ResidualTest) -> dict:
         "independent": t.independent,
         "open_loop": t.open_loop,
         "predictable": float(t.predictable),
+        "noise_p": float(t.noise_p) if np.isfinite(t.noise_p) else None,
     }
 
 
@@ -195,7 +206,9 @@ def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
     (:func:`noisy_inputs`); empty when its likelihood holds as far as the records tell."""
     reasons, loop = [], False
     for t in tests:
-        if not t.white and t.independent:  # a residual the input explains is a missing term: the selection's job
+        # a residual the input explains is a missing term, and one coloured over a white noise (told between
+        # periods) the model's error: the selection's and the model choice's to judge, not the likelihood's
+        if not t.white and t.independent and not t.noise_white:
             reasons.append(
                 f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
                 f"{100 * t.predictable:.2g} % of their variance predictable from their past): "

@@ -105,8 +105,8 @@ def beyond_library(mean: np.ndarray, chosen: int, floor: float) -> str | None:
     return (
         f"the chosen structure leaves {100 * mean[chosen]:.3g} % cross-validated error, "
         f"{mean[chosen] / floor:.2g} times the noise floor ({100 * floor:.2g} %), and the best on the path "
-        f"{100 * best:.3g} %: the library does not seem to hold the law (its terms each buy little), "
-        "the model is an approximation within the training range"
+        f"{100 * best:.3g} %: the library does not seem to hold the law (its terms each buy little), or the "
+        "record holds a disturbance (see the doubts); the model is an approximation within the training range"
     )
 
 
