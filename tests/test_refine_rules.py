@@ -177,3 +177,22 @@ def test_the_validated_choice_takes_a_richer_structure_only_when_every_fold_says
     assert rule.choose([3, 4], [10.0, 11.0], clear, floor=0.0099)[0] == 1
     ran_away = np.array([[0.0040, 50.0, 0.0040], [0.0041, 0.0041, 0.0041]])
     assert rule.choose([4, 5], [1.0, 2.0], ran_away, floor=0.0040)[0] == 1
+
+
+def test_the_library_is_said_to_lack_the_law_only_when_more_terms_still_buy_a_little():
+    """:func:`symsbl._refine.path.beyond_library` on fold errors (relative) of a path, noise floor 0.031: an
+    exact model whose folds stay above it (10.4 %, as from three accelerometer records at 3 % noise) and which a
+    richer structure does not beat is not named; a chosen structure that richer ones still beat beyond their
+    standard error, or the richest whose last term closed less than a tenth of the gap, is."""
+    from symsbl._refine.path import beyond_library
+
+    folds = np.array([0.0, 0.001, -0.001, 0.0005, -0.0005])
+    exact = np.array([0.77 + folds, 0.104 + folds, 0.1045 + folds])
+    assert beyond_library([3, 4, 5], exact, 1, 0.031, 0.1) is None
+    lacking = np.array([0.124 + folds, 0.0241 + folds, 0.0218 + folds, 0.0216 + folds * 1.01])
+    line = beyond_library([3, 4, 5, 6], lacking, 2, 0.005, 0.1)
+    assert line is not None and "2.18 %" in line and "4.4 times the noise floor" in line
+    richest = np.array([0.124 + folds, 0.0225 + folds, 0.0218 + folds])  # its last term: 2.25 -> 2.18 %
+    assert beyond_library([3, 4, 5], richest, 2, 0.005, 0.1) is not None
+    assert beyond_library([3, 4, 5], lacking[:3], 2, 0.005, 0.1) is None  # 2.41 -> 2.18 %: a tenth of the gap
+    assert beyond_library([3, 4, 5, 6], lacking, 2, 0.01, 0.1) is None  # within 3 times the floor
