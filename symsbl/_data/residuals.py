@@ -242,16 +242,17 @@ def residual_test(
     residual's part that the past and present input explain is removed (:func:`past_removed`)."""
     from scipy import stats
 
-    loop_e, loop_inputs = (e, inputs) if loop is None else loop
     _, p = ljung_box(e, lags, n_params)
     z = float(stats.norm.isf((1.0 - (1.0 - LEVEL) ** (1.0 / ((lags + 1) * max(family, 1)))) / 2.0))
     inside, feedback = {}, {}
+    filters = {name: prewhitening(u) for name, u in inputs.items()}
     for name, u in inputs.items():
-        a = prewhitening(u)
+        a = filters[name]
         rho, band = cross_correlation(innovations(e, a[1:]), innovations(u, a[1:]), lags)
         inside[name] = float(np.max(np.abs(rho[lags:]) / (z * band[lags:])))
+    loop_e, loop_inputs = (e, inputs) if loop is None else loop
     for name, u in loop_inputs.items():
-        a = prewhitening(u)
+        a = filters[name] if loop is None else prewhitening(u)
         uf = innovations(u, a[1:])
         rho, band = cross_correlation(past_removed(innovations(loop_e, a[1:]), uf, PAST * lags), uf, lags)
         feedback[name] = float(np.max(np.abs(rho[: lags - SPLINE_LAGS]) / (z * band[: lags - SPLINE_LAGS])))

@@ -73,8 +73,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
     scale = np.sqrt(passes.per_record(sol.w))[seg.record_of_segment]
     spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
-    R_loop, U_loop, periodic = _aperiodic(passes.records, R, U)
-    Y_noise = _aperiodic(passes.records, np.full(R.shape, np.nan), U, passes.records.Y)[0]
+    periodic, R_loop, U_loop, Y_noise = _loop_parts(passes.records, R, U)
     out = []
     for c, name in enumerate(engine.measured):
         es: list[np.ndarray] = []
@@ -109,7 +108,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
             LAGS,
             int(np.count_nonzero(noise.ar[c])) if p else 0,
             family=len(engine.measured) * max(len(names), 1),
-            loop=(loop_e, loop_inputs),
+            loop=(loop_e, loop_inputs) if periodic.any() else None,  # else the same arrays: tested as they are
         )
         between = Y_noise[:, c][np.isfinite(Y_noise[:, c])]
         if between.size > 4 * LAGS:
@@ -123,29 +122,33 @@ def _tests(engine, sol) -> list[ResidualTest]:
 EXACT = 1e-9
 
 
-def _aperiodic(
-    records, R: np.ndarray, U: np.ndarray, Y: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The residual ``R`` and the inputs ``U`` where only noise and a loop can show: in each record whose inputs
-    are periodic (:func:`symsbl._data.excitation.period`), their parts that do not repeat from period to period
-    (a model's error under a periodic input repeats, the noise does not, nor what a loop feeds back of it; a
-    transient that has not passed colours the residual's part, which the test's band allows for), over all but
-    the last whole period (:func:`symsbl._data.excitation.aperiodic_part`), the rest left out (NaN); elsewhere
-    the residual and the inputs as they are. Also whether each record is periodic. With ``Y`` (the measured
-    outputs), their non-repeating parts in place of the residual's: the noise alone, once the transient has
-    passed (NaN where the inputs are not periodic)."""
-    R_loop, U_loop = R.copy(), U.astype(float, copy=True)
-    periodic = np.zeros(len(records.starts), dtype=bool)
-    for i, (a, m) in enumerate(zip(records.starts, records.lengths)):
-        L = period(U[a : a + m]) if U.shape[1] else None
+def _loop_parts(records, R: np.ndarray, U: np.ndarray):
+    """Whether each record's inputs are periodic, and the residual ``R``, the inputs ``U`` and the measured
+    outputs between periods (:func:`_between_periods`: the residual and the inputs as they are, the outputs NaN,
+    where the inputs are not periodic)."""
+    spans = list(zip(records.starts, records.lengths))
+    periods = [period(U[a : a + m]) if U.shape[1] else None for a, m in spans]
+    periodic = np.array([L is not None for L in periods], dtype=bool)
+    between = [_between_periods(X, spans, periods, other) for X, other in ((R, R), (U, U), (records.Y, np.nan))]
+    return periodic, *between
+
+
+def _between_periods(X: np.ndarray, spans, periods, elsewhere) -> np.ndarray:
+    """``X`` where only noise and a loop can show: in each record (``spans``: start, length) whose inputs have a
+    period (``periods``, samples or None; :func:`symsbl._data.excitation.period`), the part of ``X`` that does
+    not repeat from period to period over all but the last whole period
+    (:func:`symsbl._data.excitation.aperiodic_part`; a model's error under a periodic input repeats, the noise
+    does not, nor what a loop feeds back of it, and a transient that has not passed colours the part, which the
+    test's band allows for), the rest of the record NaN; ``elsewhere`` (an array like ``X``, or a value) in the
+    records that are not periodic."""
+    out = np.array(np.broadcast_to(elsewhere, X.shape), dtype=float)
+    for (a, m), L in zip(spans, periods):
         if L is None:
             continue
-        periodic[i] = True
         whole = (m // L - 1) * L
-        R_loop[a : a + whole] = aperiodic_part((R if Y is None else Y)[a : a + m], L)
-        U_loop[a : a + whole] = aperiodic_part(U[a : a + m], L)
-        R_loop[a + whole : a + m] = np.nan
-    return R_loop, U_loop, periodic
+        out[a : a + whole] = aperiodic_part(X[a : a + m], L)
+        out[a + whole : a + m] = np.nan
+    return out
 
 
 def as_record(t: ResidualTest) -> dict:

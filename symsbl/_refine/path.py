@@ -105,11 +105,12 @@ def beyond_library(sizes, E: np.ndarray, chosen: int, floor: float, min_gain: fl
     if floor <= 0 or not np.isfinite(mean[chosen]) or mean[chosen] <= BEYOND * floor:
         return None
     sizes = np.asarray(sizes)
-    richer = [k for k in range(len(sizes)) if sizes[k] > sizes[chosen] and np.isfinite(mean[k])]
-    small = any(mean[chosen] - mean[k] > paired_se(E[k], E[chosen]) for k in richer)
-    if not richer:
-        simpler = [k for k in range(len(sizes)) if sizes[k] < sizes[chosen] and np.isfinite(mean[k])]
-        last = max(simpler, key=lambda k: sizes[k], default=None)
+    scored = [k for k in range(len(sizes)) if np.isfinite(mean[k])]
+    richer = [k for k in scored if sizes[k] > sizes[chosen]]
+    if richer:
+        small = any(mean[chosen] - mean[k] > paired_se(E[k], E[chosen]) for k in richer)
+    else:
+        last = max((k for k in scored if sizes[k] < sizes[chosen]), key=lambda k: sizes[k], default=None)
         small = last is not None and mean[last] - mean[chosen] < min_gain * (mean[last] - floor)
     if not small:
         return None
