@@ -4,12 +4,16 @@ import os
 import stat
 import subprocess
 import sys
+import warnings
 from collections import OrderedDict
 
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import exactly
+from scipy import special
 
+import symsbl
 import symsbl._base.jit as jit_module
 from symsbl import SimulationError
 
@@ -33,6 +37,8 @@ def fresh(monkeypatch, tmp_path):
     monkeypatch.setenv(jit_module.CACHE_ENV, str(directory))
     monkeypatch.setattr(jit_module, "_MEMORY", OrderedDict())
     monkeypatch.setattr(jit_module, "_SEEN", set())
+    monkeypatch.setattr(jit_module, "_UNUSABLE", set())
+    monkeypatch.setattr(jit_module, "_WARNED", set())
     return directory
 
 
@@ -40,6 +46,8 @@ def forget(monkeypatch):
     """As a new process: nothing in memory, and no compiler that would run."""
     monkeypatch.setattr(jit_module, "_MEMORY", OrderedDict())
     monkeypatch.setattr(jit_module, "_SEEN", set())
+    monkeypatch.setattr(jit_module, "_UNUSABLE", set())
+    monkeypatch.setattr(jit_module, "_WARNED", set())
 
     def no_compiler(*args, **kwargs):
         raise AssertionError(f"the compiler ran: {args[0]}")
@@ -139,3 +147,93 @@ def test_a_library_from_another_compiler_is_not_loaded(fresh, monkeypatch, tmp_p
     jit_module.jit_wrap(mapped(9), "f_chunk", True, SimulationError)
     assert len(list(fresh.iterdir())) == 2
     assert subprocess.run([str(other), "--version"], capture_output=True).returncode == 0
+
+
+LACKS_ERFINV = (
+    "compiled code: the C library lacks 'erfinv', which the generated C code calls; such functions run on CasADi's "
+    "virtual machine instead (the same values, slower)"
+)
+
+
+def with_erfinv() -> ca.Function:
+    """x |-> erfinv(tanh(x)) over 16 samples: CasADi generates a call of erfinv, which no C library defines."""
+    x = ca.SX.sym("x")
+    return ca.Function("g", [x], [ca.erfinv(ca.tanh(x))], ["x"], ["y"]).map(16)
+
+
+def test_code_calling_a_function_the_c_library_lacks_runs_on_the_virtual_machine_after_one_warning(fresh, monkeypatch):
+    fn = with_erfinv()
+    z = np.linspace(-1.0, 2.0, 16)[None, :]
+    reference = np.asarray(fn(z)).ravel()  # the virtual machine
+    np.testing.assert_allclose(reference, special.erfinv(np.tanh(z.ravel())), rtol=1e-6)  # CasADi: to 5e-7
+    with pytest.warns(RuntimeWarning, match=exactly(LACKS_ERFINV)):
+        wrapped, is_compiled = jit_module.jit_wrap(fn, "g_chunk", "auto", SimulationError)
+    assert wrapped is fn and not is_compiled
+    np.testing.assert_array_equal(np.asarray(wrapped(z)).ravel(), reference)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same function again: no second warning, nothing compiled
+        monkeypatch.setattr(jit_module.subprocess, "run", lambda *a, **k: pytest.fail("the compiler ran"))
+        assert jit_module.jit_wrap(fn, "g_chunk", "auto", SimulationError) == (fn, False)
+    with pytest.raises(
+        SimulationError,
+        match=exactly(
+            "jit: expected generated C code that runs for jit=True, received the C library lacks 'erfinv', which the "
+            "generated C code calls; pass jit='auto'"
+        ),
+    ):
+        jit_module.jit_wrap(fn, "g_chunk", True, SimulationError)
+    forget(monkeypatch)  # a later run finds the library on disk, does not compile it again, and warns again
+    with pytest.warns(RuntimeWarning, match=exactly(LACKS_ERFINV)):
+        assert jit_module.jit_wrap(with_erfinv(), "g_chunk", "auto", SimulationError)[1] is False
+    assert [p.suffix for p in fresh.iterdir()] == [".so"]
+
+
+class _Twice(ca.Callback):
+    """y = 2 x computed in Python: a Function CasADi cannot export to C."""
+
+    def __init__(self):
+        ca.Callback.__init__(self)
+        self.construct("twice", {})
+
+    def get_n_in(self):
+        return 1
+
+    def get_n_out(self):
+        return 1
+
+    def eval(self, arg):
+        return [2 * arg[0]]
+
+
+def test_a_function_casadi_cannot_export_runs_on_the_virtual_machine_after_one_warning(fresh, monkeypatch, capsys):
+    twice = _Twice()
+    x = ca.MX.sym("x")
+    fn = ca.Function("h", [x], [twice(x)], ["x"], ["y"]).map(4)
+    monkeypatch.setattr(jit_module.subprocess, "run", lambda *a, **k: pytest.fail("the compiler ran"))
+    with pytest.warns(RuntimeWarning) as caught:
+        wrapped, is_compiled = jit_module.jit_wrap(fn, "h_chunk", "auto", SimulationError)
+    assert [str(w.message) for w in caught] == [
+        "compiled code: CasADi cannot generate C code for CallbackInternal; such functions run on CasADi's virtual "
+        "machine instead (the same values, slower)"
+    ]
+    assert wrapped is fn and not is_compiled and capsys.readouterr().err == ""  # CasADi's own notice is not shown
+    np.testing.assert_array_equal(np.asarray(wrapped(np.arange(4.0)[None, :])).ravel(), [0.0, 2.0, 4.0, 6.0])
+
+
+def test_the_command_identifies_with_a_library_term_the_c_library_lacks(tmp_path, duffing_system):
+    # the dynamic linker ended the process (exit 127) at the compiled function's first call of erfinv
+    record = symsbl.simulate(duffing_system, symsbl.time_grid(0.05, 8192), inputs=symsbl.Sine(100.0, 10.0))
+    symsbl.write_trajectory(record.with_noise(0.004, seed=1), tmp_path / "train.csv")
+    (tmp_path / "erfinv.py").write_text(
+        "import casadi as ca\nimport symsbl\n"
+        "x1, x2, F = symsbl.symbols('x1 x2 F')\n"
+        "library = symsbl.Library([x2, x1**3, F, ca.erfinv(ca.tanh(x1))], [x1, x2, F])\n"
+    )
+    argv = ["identify", "train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "erfinv.py", "--quiet"]
+    env = {**os.environ, jit_module.CACHE_ENV: str(tmp_path / "jit")}
+    done = subprocess.run(
+        [sys.executable, "-m", "symsbl", *argv], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == [f"symsbl identify: warning: {LACKS_ERFINV}"]
+    assert "erfinv(tanh(x1))" in done.stdout  # the term was kept: the simulations ran it too

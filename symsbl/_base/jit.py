@@ -4,7 +4,11 @@
 C source with CasADi's code generator, compiles it with the system C compiler into a shared library
 and loads it back with ``casadi.external``. Without a compiler, or when compiling fails, the
 Function runs on CasADi's virtual machine instead (``jit="auto"``) or an error says why
-(``jit=True``).
+(``jit=True``). Generated code that cannot run here whatever the compiler (it calls a function the C
+library lacks, such as ``erfinv``, or holds a Function CasADi cannot export to C) also runs on the
+virtual machine, after one warning per reason: a library is opened with every symbol bound at once
+(``RTLD_NOW``) before CasADi calls into it, since a symbol bound lazily that is missing ends the process
+at its first call.
 
 Compiling costs 0.1-2 s a Function (gcc ``-O3``), often more than the computation it speeds up on
 a short record, and the same structures come back run after run (the same library, the same
@@ -24,16 +28,22 @@ identified model re-simulated, the same refinement step). Compiled libraries are
 from __future__ import annotations
 
 import atexit
+import contextlib
+import ctypes
 import functools
 import glob
 import hashlib
+import io
 import itertools
 import os
 import platform
+import re
 import shutil
 import subprocess
+import sys
 import tempfile
 import time
+import warnings
 from collections import OrderedDict
 
 import casadi as ca
@@ -57,6 +67,8 @@ MAX_AUTO_SOURCE = 256_000
 _MEMORY: OrderedDict[tuple, ca.Function] = OrderedDict()
 _MEMORY_SIZE = 64
 _SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
+_UNUSABLE: set = set()  # keys whose generated code cannot run here: not generated again in the process
+_WARNED: set[str] = set()  # reasons already warned about: one warning each per process
 _SCRATCH: str | None = None
 _COUNTER = itertools.count()
 _OFF = frozenset({"", "0", "off", "no", "false", "none"})
@@ -140,7 +152,8 @@ def jit_wrap(
     fn : ca.Function
     name : str
     jit : {"auto", True, False}
-        ``"auto"`` compiles when a compiler exists and falls back silently; ``True`` requires it.
+        ``"auto"`` compiles when a compiler exists and falls back silently (with one warning when the
+        generated code cannot run: see the module's description); ``True`` requires it.
     error : SymsblError subclass
         Raised when ``jit=True`` cannot be honoured.
     only_cached : bool
@@ -175,6 +188,8 @@ def jit_wrap(
     cached = jit_lookup(key)
     if cached is not None:
         return cached, True
+    if key in _UNUSABLE and jit == "auto":
+        return fn, False
     args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
     wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
     build = not only_cached or key in _SEEN  # compiled from the second request on: a structure used again
@@ -188,6 +203,8 @@ def jit_wrap(
                 expected("jit", "a successful compilation for jit=True", reason, "pass jit='auto'", raw=True)
             ) from None
         return fn, False
+    if isinstance(compiled, str):
+        return _unusable(fn, key, compiled, jit, error)
     if compiled is None:
         _SEEN.add(key)
         return fn, False
@@ -197,29 +214,74 @@ def jit_wrap(
     return compiled, True
 
 
-def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = None) -> ca.Function | None:
+def _unusable(fn: ca.Function, key, reason: str, jit, error: type[SymsblError]) -> tuple[ca.Function, bool]:
+    """``fn`` uncompiled, after one warning per ``reason`` (``jit="auto"``); an error for ``jit=True``."""
+    if jit is True:
+        raise error(expected("jit", "generated C code that runs for jit=True", reason, "pass jit='auto'", raw=True))
+    _UNUSABLE.add(key)
+    if reason not in _WARNED:
+        _WARNED.add(reason)
+        warnings.warn(
+            f"compiled code: {reason}; such functions run on CasADi's virtual machine instead (the same values, "
+            "slower)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    return fn, False
+
+
+def _source(fn: ca.Function) -> tuple[str, str]:
+    """The C source of ``fn`` and ``""``, or ``""`` and why CasADi cannot export it."""
+    generator = ca.CodeGenerator("symsbl_jit.c", {"with_header": False})
+    notices = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(notices):  # CasADi's notice of a part it cannot export: ours says it once
+            generator.add(fn)
+            source = generator.dump()
+    except RuntimeError as err:
+        last = (str(err).strip().splitlines() or [""])[-1].split(": ")[-1][:160]
+        return "", f"CasADi's code generator cannot export a function ({last})"
+    unsupported = re.search(r"#error Code generation not supported for (\w+)", source)
+    if unsupported:
+        return "", f"CasADi cannot generate C code for {unsupported.group(1)}"
+    sys.stderr.write(notices.getvalue())
+    return source, ""
+
+
+def _lacks(library: str) -> str:
+    """Why ``library`` cannot run, if it calls a symbol nothing provides; else ``""`` (it binds, or is damaged)."""
+    try:
+        ctypes.CDLL(library, mode=getattr(os, "RTLD_NOW", 0))  # every symbol bound now: a missing one is an OSError
+    except OSError as err:
+        missing = str(err).partition("undefined symbol: ")[2].strip()
+        return f"the C library lacks {missing!r}, which the generated C code calls" if missing else ""
+    return ""
+
+
+def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = None) -> ca.Function | str | None:
     """``fn`` as a compiled shared library: loaded from the disk cache, or (if ``build``) compiled.
 
     Returns None when ``build`` is false, or its C source is longer than ``limit``, and no compiled
-    library exists. The compiler runs as a
+    library exists; a string, why, when the generated code cannot run here whatever the compiler (a
+    library kept on disk that calls a missing symbol stays there, so a later run is told without
+    compiling it again). The compiler runs as a
     Python subprocess, so Ctrl-C during a compilation interrupts the program (a compiler started
     through ``system()``, as CasADi's own JIT does, ignores SIGINT in the caller while it runs).
     """
-    generator = ca.CodeGenerator("symsbl_jit.c", {"with_header": False})
-    generator.add(fn)
-    source = generator.dump()
+    source, unusable = _source(fn)
+    if unusable:
+        return unusable
     digest = hashlib.sha256((_fingerprint(cc) + "\n" + source).encode()).hexdigest()[:40]
     kept = cache_dir()
     directory = kept or _scratch_dir()
     library = os.path.join(directory, digest + ".so")
     if os.path.exists(library):
-        try:
-            loaded = ca.external(fn.name(), library)
-        except RuntimeError:  # unreadable: built again below
-            loaded = None
-        if loaded is not None:
-            _touch(library)
-            return loaded
+        _touch(library)
+        unusable = _lacks(library)
+        if unusable:
+            return unusable
+        with contextlib.suppress(RuntimeError):  # unreadable: built again below
+            return ca.external(fn.name(), library)
     if not build or (limit is not None and len(source) > limit):
         return None
     partial = os.path.join(directory, f".{digest}.{os.getpid()}.{next(_COUNTER)}")
@@ -236,7 +298,7 @@ def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = N
                 os.remove(leftover)
     if kept:
         _prune(kept)
-    return ca.external(fn.name(), library)
+    return _lacks(library) or ca.external(fn.name(), library)
 
 
 def _touch(path: str) -> None:
