@@ -262,6 +262,33 @@ CLI_CASES = [
         "variables are, received 'x1/0', which divides by zero; correct or remove the term",
     ),
     (
+        "a coefficient of 400 digits",
+        "numbers",
+        ["validate", "{d}/coef400.json", "{d}/train.csv"],
+        2,
+        "symsbl validate: error: model JSON.equations[1].terms[0].coef: expected a number within a float's range "
+        "(magnitude below 1.8e+308), received an integer of 400 digits; correct the number; a model file holds the "
+        "floats symsbl wrote",
+    ),
+    (
+        "a log evidence of 400 digits",
+        "numbers",
+        ["validate", "{d}/evidence400.json", "{d}/train.csv"],
+        2,
+        "symsbl validate: error: model JSON.equations[1].log_evidence: expected a number within a float's range "
+        "(magnitude below 1.8e+308), received an integer of 400 digits; correct the number; a model file holds the "
+        "floats symsbl wrote",
+    ),
+    (
+        "a coefficient of 5001 digits",
+        "numbers",
+        ["validate", "{d}/coef5001.json", "{d}/train.csv"],
+        2,
+        "symsbl validate: error: model JSON.equations[1].terms[0].coef: expected a number within a float's range "
+        "(magnitude below 1.8e+308), received an integer of 5001 digits; correct the number; a model file holds the "
+        "floats symsbl wrote",
+    ),
+    (
         "a base term that divides by zero",
         None,
         ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--base", "x1: x2; x2: F, x1/(1-1)"],
@@ -491,6 +518,16 @@ def _make(d: Path, kind: str | None) -> None:
                 server.bind(str(where))
     elif kind == "folder":
         (d / "folder.csv").mkdir(exist_ok=True)
+    elif kind == "numbers":  # integers written out in full, as a hand edit or another tool might
+        doc = json.loads((d / "model.json").read_text())
+        for name, path, digits in (
+            ("coef400", ("equations", 1, "terms", 0, "coef"), 400),
+            ("evidence400", ("equations", 1, "log_evidence"), 400),
+            ("coef5001", ("equations", 1, "terms", 0, "coef"), 5001),
+        ):
+            edited = json.loads(json.dumps(doc))
+            _set(edited, path, "DIGITS")
+            (d / f"{name}.json").write_text(json.dumps(edited).replace('"DIGITS"', "1" + "0" * (digits - 1)))
     elif kind == "div0":
         doc = json.loads((d / "model.json").read_text())
         doc["equations"][1]["terms"][0]["term"] = "x1/0"
@@ -620,6 +657,12 @@ MODEL_CASES = [
         "not an object",
         lambda d: d.clear() or d.update({"format": "symsbl-model", "version": 2, "states": "x1"}),
         "model JSON.states: expected a list of names, received 'x1'",
+    ),
+    (
+        "an integer no float holds",
+        lambda d: _set(d, ("equations", 0, "log_evidence"), -(10**400)),
+        "model JSON.equations[0].log_evidence: expected a number within a float's range (magnitude below 1.8e+308), "
+        "received an integer of 401 digits; correct the number; a model file holds the floats symsbl wrote",
     ),
     (
         "20000 terms (a 1 MB file)",

@@ -3,7 +3,8 @@
 A model file travels between people, so reading one must never run code. Every field is checked
 against the schema below before anything is built; term texts are parsed by the whitelist
 grammar of :mod:`symsbl._symbolic.parse` (never ``eval`` or ``sympify``); numbers must be finite numbers
-(not strings, not booleans); the covariance must be square, symmetric and of the equation's
+(not strings, not booleans) that a float holds, wherever they are (an integer of more digits is never
+converted); the covariance must be square, symmetric and of the equation's
 size; ``version`` must be one this release reads. The ``rhs`` text of each equation, written for
 people and for other tools, is read too and must equal the sum of its terms (it is a redundant
 copy: an edited ``rhs`` with unchanged ``terms`` is reported, not silently ignored).
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +67,8 @@ MAX_MODEL_TERMS, MAX_MODEL_NODES = 1000, 12_000
 #: Fitting methods a model file may name.
 FITS = ("equation-error", "output-error")
 _WHERE = "model JSON"
+#: Most digits of an integer a float holds (below 1.8e308); a longer one is never converted to ``int``.
+_FLOAT_DIGITS = 309
 
 
 def _finite_or_none(x: float):
@@ -140,6 +144,67 @@ def save_model(model, path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ reading
+
+
+class _LongInteger:
+    """An integer of the JSON text with more digits than a float holds, kept as its length: ``int()`` of a long
+    digit string takes time quadratic in its length and is refused past 4300 digits."""
+
+    def __init__(self, digits: int):
+        self.digits = digits
+
+
+def _integer(text: str) -> int | _LongInteger:
+    """``json.loads``' ``parse_int``: the integer, or a :class:`_LongInteger` when no float holds it."""
+    digits = len(text.lstrip("-"))
+    return int(text) if digits <= _FLOAT_DIGITS else _LongInteger(digits)
+
+
+def _loads(text: str):
+    """The JSON document of ``text``, its long integers left unconverted (:func:`_integer`)."""
+    return json.loads(text, parse_int=_integer)
+
+
+def _digits(n: int) -> int:
+    """Decimal digits of ``n``, without ``str()`` (refused past 4300 digits)."""
+    n = abs(n)
+    low = int((n.bit_length() - 1) * math.log10(2)) + 1 if n else 1  # exact or one short
+    return low + (n >= 10**low)
+
+
+def _too_large(value) -> int | None:
+    """The digits of ``value`` if it is an integer no float holds, else None."""
+    if isinstance(value, _LongInteger):
+        return value.digits
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            float(value)
+        except OverflowError:
+            return _digits(value)
+    return None
+
+
+def _check_numbers(doc) -> None:
+    """Every number of ``doc``, at any depth, is one a float holds; the first that is not is named by its path."""
+    stack = [(doc, _WHERE)]
+    while stack:
+        value, where = stack.pop()
+        items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+        inner = []
+        for key, item in items:
+            if isinstance(item, (dict, list)):
+                inner.append((item, f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]"))
+            elif (digits := _too_large(item)) is not None:
+                raise DataError(
+                    expected(
+                        f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]",
+                        f"a number within a float's range (magnitude below {sys.float_info.max:.2g})",
+                        f"an integer of {digits} digits",
+                        "correct the number; a model file holds the floats symsbl wrote",
+                        raw=True,
+                    )
+                )
+        stack.extend(reversed(inner))
 
 
 def _field(doc: dict, key: str, where: str, kind, *, default=..., what: str = ""):
@@ -432,9 +497,10 @@ def model_from_json(cls, doc):
     """Rebuild ``cls`` (IdentifiedModel) from a JSON document (dict or string), read as data."""
     if isinstance(doc, str):
         try:
-            doc = json.loads(doc)
-        except json.JSONDecodeError as err:
+            doc = _loads(doc)
+        except (json.JSONDecodeError, RecursionError) as err:
             raise DataError(expected(_WHERE, "valid JSON", f"invalid JSON ({err})", raw=True)) from None
+    _check_numbers(doc)
     states, inputs, raw_equations = _header(doc)
     syms = tuple(ca.SX.sym(n) for n in states + inputs)
     cas = {s.name(): s for s in syms}
@@ -497,7 +563,7 @@ def load_model(cls, path):
     except PermissionError:
         raise DataError(expected(f"model file {str(path)!r}", "a readable file", "no permission", raw=True)) from None
     try:
-        doc = json.loads(text)
+        doc = _loads(text)
     except (json.JSONDecodeError, RecursionError) as err:
         raise DataError(
             expected(f"model file {str(path)!r}", "valid JSON", f"invalid JSON ({err})"[:160], raw=True)
