@@ -38,9 +38,15 @@ def _names(text: str | None) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()] if text else []
 
 
+#: Why a library file holds no more than a model file, as the error says.
+_LIBRARY_BOUND = "the most a model file holds: every term is ranked and compiled before any fit"
+
+
 def _run_library_file(path: Path, states, inputs):
-    """Run a library file (its Python runs, by design) and return its ``library``."""
-    from ._symbolic.library import Library
+    """Run a library file (its Python runs, by design) and return its ``library``, no larger than a model file
+    may be (:data:`~symsbl._symbolic.library.MAX_FILE_TERMS` terms,
+    :data:`~symsbl._symbolic.library.MAX_FILE_NODES` expression nodes)."""
+    from ._symbolic.library import MAX_FILE_NODES, MAX_FILE_TERMS, Library, bound_size, expression_nodes
 
     try:
         namespace = runpy.run_path(str(path))
@@ -87,6 +93,18 @@ def _run_library_file(path: Path, states, inputs):
                 raw=True,
             )
         )
+    where = f"--library {str(path)!r}"
+    fix = "use fewer terms, or --library poly or paper with --degree for a larger polynomial library"
+    bound_size(len(found), MAX_FILE_TERMS, "terms", where=where, why=_LIBRARY_BOUND, fix=fix, error=LibraryError)
+    bound_size(
+        expression_nodes(found.exprs),
+        MAX_FILE_NODES,
+        "expression nodes",
+        where=where,
+        why=_LIBRARY_BOUND,
+        fix="use fewer or smaller terms",
+        error=LibraryError,
+    )
     return found
 
 

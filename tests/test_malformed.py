@@ -444,6 +444,41 @@ CLI_CASES = [
         "that called sys.exit(0)",
     ),
     (
+        "library file of 1140 terms",
+        "libraries",
+        ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "{d}/wide.py"],
+        2,
+        "symsbl identify: error: --library '{d}/wide.py': expected at most 1000 terms in all (the most a model file "
+        "holds: every term is ranked and compiled before any fit), received 1140; use fewer terms, or --library poly "
+        "or paper with --degree for a larger polynomial library",
+    ),
+    (
+        "library file of 13109 expression nodes",
+        "libraries",
+        ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "{d}/deep.py"],
+        2,
+        "symsbl identify: error: --library '{d}/deep.py': expected at most 12000 expression nodes in all (the most a "
+        "model file holds: every term is ranked and compiled before any fit), received 13109; use fewer or smaller "
+        "terms",
+    ),
+    (
+        "effects file of 1001 effects",
+        "effects",
+        ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--base", "x1: x2; x2: x1", "--effects", "{d}/many.txt"],
+        2,
+        "symsbl discrepancy: error: --effects {d}/many.txt: expected at most 1000 effects in all (the most a model "
+        "file holds: every effect is scored as a candidate term), received 1001; use fewer or smaller effects",
+    ),
+    (
+        "effects file of 18399 expression nodes",
+        "effects",
+        ["discrepancy", "{d}/train.csv", "--states", "x1,x2", "--base", "x1: x2; x2: x1", "--effects", "{d}/heavy.txt"],
+        2,
+        "symsbl discrepancy: error: --effects {d}/heavy.txt: expected at most 12000 expression nodes in all (the most "
+        "a model file holds: every effect is scored as a candidate term), received 18399; use fewer or smaller "
+        "effects",
+    ),
+    (
         "dead-sensor input",
         "dead",
         ["identify", "{d}/dead.csv", "--states", "x1,x2", "--inputs", "F"],
@@ -505,6 +540,13 @@ def _make(d: Path, kind: str | None) -> None:
         _write(d / "raises.py", "raise RuntimeError('boom')\n")
         _write(d / "syntax.py", "def f(:\n")
         _write(d / "exits.py", "import sys\nsys.exit(0)\n")
+        polynomial = "import symsbl\n\nlibrary = symsbl.polynomial(symsbl.symbols('x1 x2 F'), {})\n"
+        _write(d / "wide.py", polynomial.format(17))  # 1140 terms
+        _write(d / "deep.py", polynomial.format(16))  # 969 terms, 13109 nodes
+    elif kind == "effects":
+        _write(d / "many.txt", "".join(f"e{k}: tanh(x/{k + 1}.0)\n" for k in range(1001)))
+        terms = ("+".join(f"sin({j + 1}*x+{k}*v)*v**{j % 4}" for j in range(25)) for k in range(100))
+        _write(d / "heavy.txt", "".join(f"e{k}: {t}\n" for k, t in enumerate(terms)))  # 184 nodes each
     elif kind == "dead":
         _dead_input(d)
     elif kind == "dangling" and not (d / "dangling.json").is_symlink():

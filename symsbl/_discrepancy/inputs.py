@@ -9,6 +9,7 @@ import numpy as np
 
 from .._base.errors import DataError, ExpressionError, LibraryError, expected
 from .._data.trajectory import Trajectory
+from .._symbolic.library import MAX_FILE_NODES, MAX_FILE_TERMS, bound_size, expression_nodes
 from .._symbolic.parse import parse_expression
 from .._symbolic.symbols import casadi_to_sympy
 from .catalogue import Effect
@@ -71,6 +72,19 @@ def parse_base(text: str, state_names: Sequence[str], input_names: Sequence[str]
     return {s: tuple(out[s]) for s in state_names}
 
 
+def _bounded(count: int, most: int, what: str, path) -> None:
+    """Refuse an effects file bringing more than a model file may hold."""
+    bound_size(
+        count,
+        most,
+        what,
+        where=f"--effects {path}",
+        why="the most a model file holds: every effect is scored as a candidate term",
+        fix="use fewer or smaller effects",
+        error=LibraryError,
+    )
+
+
 def read_effects(path) -> tuple:
     """User effects from a text file, one per line: ``name: expression`` in the displacement ``x`` and the
     velocity ``v`` of a pair, optionally followed by ``; dissipative`` (the force must oppose the motion, as
@@ -84,7 +98,9 @@ def read_effects(path) -> tuple:
     Raises
     ------
     LibraryError
-        Naming the file, the line and what is wrong.
+        Naming the file, the line and what is wrong; or the file, when it holds more effects or expression nodes
+        than a model file may (:data:`~symsbl._symbolic.library.MAX_FILE_TERMS`,
+        :data:`~symsbl._symbolic.library.MAX_FILE_NODES`).
     """
     import re
     from pathlib import Path
@@ -97,12 +113,12 @@ def read_effects(path) -> tuple:
                 "--effects", "a readable text file of 'name: expression' lines", str(path), type(err).__name__, raw=True
             )
         ) from None
+    entries = [(number, raw) for number, raw in enumerate(lines, 1) if raw.split("#", 1)[0].strip()]
+    _bounded(len(entries), MAX_FILE_TERMS, "effects", path)
     x, v = ca.SX.sym("x"), ca.SX.sym("v")
-    out = []
-    for number, raw in enumerate(lines, 1):
+    out, exprs = [], []
+    for number, raw in entries:
         text = raw.split("#", 1)[0].strip()
-        if not text:
-            continue
         where = f"--effects {path}, line {number}"
         name, sep, rest = text.partition(":")
         name = name.strip()
@@ -122,6 +138,7 @@ def read_effects(path) -> tuple:
             expr = parse_expression(body.strip(), {"x": x, "v": v}, where=where)
         except ExpressionError as err:
             raise LibraryError(str(err)) from None
+        exprs.append(expr)
         out.append(
             Effect(
                 name,
@@ -134,6 +151,7 @@ def read_effects(path) -> tuple:
         )
     if not out:
         raise LibraryError(expected("--effects", "at least one 'name: expression' line", f"none in {path}", raw=True))
+    _bounded(expression_nodes(exprs), MAX_FILE_NODES, "expression nodes", path)
     return tuple(out)
 
 

@@ -40,6 +40,7 @@ import numpy as np
 
 from .._base.errors import DataError, ExpressionError, expected
 from .._base.outputs import safe_output, write_atomic
+from .._symbolic.library import MAX_FILE_NODES, MAX_FILE_TERMS, bound_size, expression_nodes
 from .._symbolic.parse import parse_expression
 from .._symbolic.symbols import symbols as make_symbols
 from .estimates import Equation, TermEstimate
@@ -61,9 +62,8 @@ __all__ = [
 JSON_VERSION = 2
 #: The versions this release reads.
 READABLE_VERSIONS = (1, 2)
-#: Most terms, and most expression nodes of their terms, a model file may hold (validating 1000 polynomial
-#: terms, 11000 nodes, takes 20 s and 0.7 GB on a 4097-sample record; the work grows in proportion).
-MAX_MODEL_TERMS, MAX_MODEL_NODES = 1000, 12_000
+#: Most terms, and most expression nodes of their terms, a model file may hold: those of any file of terms.
+MAX_MODEL_TERMS, MAX_MODEL_NODES = MAX_FILE_TERMS, MAX_FILE_NODES
 #: Fitting methods a model file may name.
 FITS = ("equation-error", "output-error")
 _WHERE = "model JSON"
@@ -443,16 +443,15 @@ def _joint_covariance(doc, n: int) -> np.ndarray | None:
 def _bounded(count: int, most: int, what: str) -> None:
     """Refuse a model file asking for more work than any identification gives: re-simulating it costs time and
     memory in proportion to its terms and their expressions."""
-    if count > most:
-        raise DataError(
-            expected(
-                f"{_WHERE}.equations",
-                f"at most {most} {what} in all (the most a model of this release is re-simulated with)",
-                f"{count}",
-                "a model file holds the terms an identification kept; check where this one came from",
-                raw=True,
-            )
-        )
+    bound_size(
+        count,
+        most,
+        what,
+        where=f"{_WHERE}.equations",
+        why="the most a model of this release is re-simulated with",
+        fix="a model file holds the terms an identification kept; check where this one came from",
+        error=DataError,
+    )
 
 
 def _path(doc) -> ModelPath:
@@ -515,7 +514,7 @@ def model_from_json(cls, doc):
     equations = [
         _equation(raw, f"{_WHERE}.equations[{k}]", states, cas, seen, algebraic) for k, raw in enumerate(raw_equations)
     ]
-    _bounded(sum(ca.n_nodes(t.expr) for eq in equations for t in eq.terms), MAX_MODEL_NODES, "expression nodes")
+    _bounded(expression_nodes(t.expr for eq in equations for t in eq.terms), MAX_MODEL_NODES, "expression nodes")
     missing = [s for s in states + algebraic if s not in seen]
     if missing:
         raise DataError(
