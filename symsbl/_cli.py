@@ -42,58 +42,49 @@ def _names(text: str | None) -> list[str]:
 _LIBRARY_BOUND = "the most a model file holds: every term is ranked and compiled before any fit"
 
 
+def _user_code(run, where: str, what: str, exited: str):
+    """``run()``, code of a library file; whatever it raises but Ctrl-C is one :class:`LibraryError` naming the
+    file (``exited``: what was expected instead of a call of ``sys.exit``)."""
+    try:
+        return run()
+    except KeyboardInterrupt:  # Ctrl-C, or the file's own: the command ends as interrupted, as everywhere
+        raise
+    except SystemExit as exc:
+        what, got = exited, f"a file that called sys.exit({exc.code!r})"
+    except BaseException as exc:  # noqa: BLE001 - the user's file may raise anything, a BaseException subclass too
+        try:
+            line = (str(exc).strip().splitlines() or [""])[0]
+        except Exception:  # noqa: BLE001 - an exception whose own __str__ fails
+            line = ""
+        got = f"{type(exc).__name__}{': ' + line if line else ''}"[:160]
+    raise LibraryError(expected(where, what, got, raw=True))
+
+
 def _run_library_file(path: Path, states, inputs):
     """Run a library file (its Python runs, by design) and return its ``library``, no larger than a model file
     may be (:data:`~symsbl._symbolic.library.MAX_FILE_TERMS` terms,
     :data:`~symsbl._symbolic.library.MAX_FILE_NODES` expression nodes)."""
     from ._symbolic.library import MAX_FILE_NODES, MAX_FILE_TERMS, Library, bound_size, expression_nodes
 
-    try:
-        namespace = runpy.run_path(str(path))
-    except SystemExit as exc:
-        raise LibraryError(
-            expected(
-                f"--library {str(path)!r}",
-                "a file that defines `library`",
-                f"a file that called sys.exit({exc.code!r})",
-                raw=True,
-            )
-        ) from None
-    except Exception as exc:  # noqa: BLE001 - the user's file may raise anything
-        line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-        raise LibraryError(
-            expected(
-                f"--library {str(path)!r}",
-                "a Python file that runs",
-                f"{type(exc).__name__}{': ' + line if line else ''}",
-                raw=True,
-            )
-        ) from None
+    where = f"--library {str(path)!r}"
+    namespace = _user_code(
+        lambda: runpy.run_path(str(path)), where, "a Python file that runs", "a file that defines `library`"
+    )
     found = namespace.get("library")
     if callable(found) and not isinstance(found, Library):
-        try:
-            found = found(states, inputs)
-        except Exception as exc:  # noqa: BLE001
-            raise LibraryError(
-                expected(
-                    f"--library {str(path)!r}",
-                    "library(states, inputs) returning a Library",
-                    f"{type(exc).__name__}: {exc}"[:160],
-                    raw=True,
-                )
-            ) from None
+        build, call = found, "library(states, inputs) returning a Library"
+        found = _user_code(lambda: build(states, inputs), where, call, call)
     if not isinstance(found, Library):
         got = type(found).__name__ if found is not None else "no `library`"
         raise LibraryError(
             expected(
-                f"--library {str(path)!r}",
+                where,
                 "a file defining `library`, a symsbl Library (or a "
                 "function library(states, inputs) returning one) named like the data's columns",
                 got,
                 raw=True,
             )
         )
-    where = f"--library {str(path)!r}"
     fix = "use fewer terms, or --library poly or paper with --degree for a larger polynomial library"
     bound_size(len(found), MAX_FILE_TERMS, "terms", where=where, why=_LIBRARY_BOUND, fix=fix, error=LibraryError)
     bound_size(

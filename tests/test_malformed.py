@@ -444,6 +444,28 @@ CLI_CASES = [
         "that called sys.exit(0)",
     ),
     (
+        "library file that raises a BaseException of its own",
+        "libraries",
+        ["identify", "{d}/train.csv", "--states", "x1,x2", "--library", "{d}/stops.py"],
+        2,
+        "symsbl identify: error: --library '{d}/stops.py': expected a Python file that runs, received Stop: halt",
+    ),
+    (
+        "library file that raises KeyboardInterrupt, as Ctrl-C does",
+        "libraries",
+        ["identify", "{d}/train.csv", "--states", "x1,x2", "--library", "{d}/interrupted.py"],
+        130,
+        "symsbl identify: error: interrupted",
+    ),
+    (
+        "library function that calls sys.exit",
+        "libraries",
+        ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "{d}/exits_later.py"],
+        2,
+        "symsbl identify: error: --library '{d}/exits_later.py': expected library(states, inputs) returning a "
+        "Library, received a file that called sys.exit(3)",
+    ),
+    (
         "library file of 1140 terms",
         "libraries",
         ["identify", "{d}/train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "{d}/wide.py"],
@@ -540,6 +562,9 @@ def _make(d: Path, kind: str | None) -> None:
         _write(d / "raises.py", "raise RuntimeError('boom')\n")
         _write(d / "syntax.py", "def f(:\n")
         _write(d / "exits.py", "import sys\nsys.exit(0)\n")
+        _write(d / "stops.py", "class Stop(BaseException):\n    pass\n\n\nraise Stop('halt')\n")
+        _write(d / "interrupted.py", "raise KeyboardInterrupt\n")
+        _write(d / "exits_later.py", "import sys\n\n\ndef library(states, inputs):\n    sys.exit(3)\n")
         polynomial = "import symsbl\n\nlibrary = symsbl.polynomial(symsbl.symbols('x1 x2 F'), {})\n"
         _write(d / "wide.py", polynomial.format(17))  # 1140 terms
         _write(d / "deep.py", polynomial.format(16))  # 969 terms, 13109 nodes
