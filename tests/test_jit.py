@@ -232,8 +232,16 @@ def test_the_command_identifies_with_a_library_term_the_c_library_lacks(tmp_path
     argv = ["identify", "train.csv", "--states", "x1,x2", "--inputs", "F", "--library", "erfinv.py", "--quiet"]
     env = {**os.environ, jit_module.CACHE_ENV: str(tmp_path / "jit")}
     done = subprocess.run(
-        [sys.executable, "-m", "symsbl", *argv], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "symsbl", *argv, "--json", "m.json"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr
     assert done.stderr.splitlines() == [f"symsbl identify: warning: {LACKS_ERFINV}"]
     assert "erfinv(tanh(x1))" in done.stdout  # the term was kept: the simulations ran it too
+    # the model file it wrote reads back: erfinv is in the model file's grammar
+    model = symsbl.IdentifiedModel.load(tmp_path / "m.json")
+    assert "erfinv(tanh(x1))" in model.equation("x2").names

@@ -75,6 +75,7 @@ FUNCTIONS = {
     "floor": ca.floor,
     "ceiling": ca.ceil,
     "erf": ca.erf,
+    "erfinv": ca.erfinv,
     "atan2": ca.atan2,
     "Min": _min_max(ca.fmin),
     "Max": _min_max(ca.fmax),
