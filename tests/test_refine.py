@@ -746,6 +746,58 @@ def test_only_a_sign_whose_term_jumps_is_smoothed_and_counted_as_stiffness():
             assert engine._sign_rate() == 0.0 and engine.substeps == 1
 
 
+def test_a_sign_of_a_position_counts_as_the_square_root_of_its_stiffness():
+    """``-50 sign(x1)`` in ``x2'`` adds ``K = 50 / eps`` to the Jacobian's ``(x2, x1)`` entry; through ``x1' = x2``
+    the eigenvalues are ``+-i sqrt(K)`` (checked against numpy on the smoothed model's Jacobian at ``x1 = 0``), and
+    the substeps follow ``sqrt(K)`` (and the Jacobian's own eigenvalues at the samples), not ``K`` (which took
+    the cap of 32)."""
+    from symsbl._refine.engine import Engine, Settings
+
+    x1, x2, F = symbols("x1 x2 F")
+    system = OdeSystem((x1, x2), (F,), (x2, F - 20 * x2 - 1e4 * x1 - 50 * ca.sign(x1)))
+    record = simulate(system, time_grid(1.0, 4096), inputs=symsbl.Sine(100.0, 10.0), method="rk4")
+    model = identify(record, symsbl.custom([x2, F, x1, ca.sign(x1)], [x1, x2, F]), refine=False)
+    engine = Engine(model, [record], ("x1", "x2"), Settings(), {})
+    coef = abs(next(t.coef for t in model.equation("x2").terms if str(t.sympy) == "sign(x1)"))
+    stiffness = coef / engine.widths["x1"]
+    assert engine._sign_rate() == pytest.approx(np.sqrt(stiffness), rel=1e-12)
+    param = engine.param
+    x, u, th = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("th", param.n_free)
+    J = np.array(ca.Function("J", [x, u, th], [ca.jacobian(param.rhs(x, u, th), x)])([0, 0], [0], param.theta0))
+    assert np.max(np.abs(np.linalg.eigvals(J))) == pytest.approx(np.sqrt(stiffness + 1e4), rel=0.01)
+    assert int(np.ceil(record.dt * np.sqrt(stiffness))) <= engine.substeps < 32  # K / 4096 Hz took the cap
+
+
+def test_a_term_infinite_where_the_records_run_is_not_offered_to_the_output_error():
+    """``tan(v)`` has poles at odd multiples of pi/2: over a velocity of +-40 it is infinite 25 times (no simulation
+    passes through), over +-1 never; ``log(x)`` and ``1/x`` where ``x`` crosses 0; polynomials, ``Abs`` and ``sign``
+    never. The library written for refinement leaves out exactly the terms with a pole inside the records'
+    ranges, and the penalty still counts every term offered."""
+    import sympy as sp
+
+    from symsbl._refine.candidates import Rebased, pole_within
+
+    xs, vs = sp.symbols("x v")
+    wide, narrow = (("v", -40.0, 40.0), ("x", -0.05, 0.05)), (("v", -1.0, 1.0), ("x", 0.5, 2.0))
+    assert pole_within(sp.tan(vs), wide) and not pole_within(sp.tan(vs), narrow)
+    assert not pole_within(sp.tan(xs), wide)  # |x| < 0.05 < pi / 2
+    assert pole_within(sp.log(xs), wide) and not pole_within(sp.log(xs), narrow)
+    assert pole_within(1 / xs, wide) and not pole_within(xs**-2, narrow)
+    for term in (xs**3 * vs, vs * sp.Abs(vs), sp.sign(xs), sp.sin(vs)):
+        assert not pole_within(term, wide)
+
+    x, v, F = symbols("x v F")
+    system = OdeSystem((x, v), (F,), (v, F - 2 * v - 100 * x))
+    record = simulate(system, time_grid(1.0, 512), inputs=symsbl.Sine(20.0, 2.0), method="rk4")
+    model = identify(record, symsbl.custom([v, F, x], [x, v, F]), refine=False)
+    library = symsbl.paper([x, v], [F], degree=2)
+    ranges = {"x": (-0.05, 0.05), "v": (-40.0, 40.0), "F": (-20.0, 20.0)}
+    rebased = Rebased(library, model, ranges)
+    assert rebased.with_poles == ("tan(v)",)
+    assert len(rebased) == len(library) - 1 and rebased.offered == len(library)
+    assert "tan(v)" not in rebased and "tan(x)" in rebased
+
+
 def test_a_constant_with_look_alikes_gets_a_prior():
     """An offset the equation error found indistinguishable from cos(x1) (a small swing): the look-alike's
     prior is scaled by the spread of its twin, which a constant does not have (this overflowed once)."""

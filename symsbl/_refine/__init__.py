@@ -166,12 +166,12 @@ def refine(
     if library is not None:
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
-        rebased = Rebased(library, model)
+        rebased = Rebased(library, model, _ranges(model, used, measured))
     refined, rounds, proposed = _rounds(model, used, measured, settings, select, rebased, rule)
     info = refined.metadata["refine"]
     stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
     if not stuck and select and rule.model_choice != "evidence":  # the structure that validates
-        n_candidates = len(rebased) if rebased is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
+        n_candidates = len(library) if library is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
         refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates, info["short_segments"])
     meta = refined.metadata["refine"]
     if len(used) != len(records):  # windows of the records were fitted: their noise levels are not the records'
@@ -185,6 +185,7 @@ def refine(
             lhs: list(dict.fromkeys(n for p in proposed for n in p.get(lhs, ())))
             for lhs in dict.fromkeys(k for p in proposed for k in p)
         },
+        with_poles=list(rebased.with_poles) if rebased is not None else [],
         seconds=round(clock(), 3),
     )
     if meta["hypersensitive"]:
@@ -192,6 +193,17 @@ def refine(
     if meta["doubts"] or not meta["hypersensitive"]:  # a hypersensitive record's residual follows its input anyway
         _warn(meta)
     return refined
+
+
+def _ranges(model: IdentifiedModel, records, measured) -> dict:
+    """``{variable: (low, high)}`` of every state and input over ``records`` (a state not measured: its guess, a
+    velocity from its position)."""
+    guess = state_guess(model, records, measured)
+    out = {n: (float(np.min(guess[:, k])), float(np.max(guess[:, k]))) for k, n in enumerate(model.state_names)}
+    for name in model.input_names:
+        u = np.concatenate([r.column(name) for r in records])
+        out[name] = (float(np.min(u)), float(np.max(u)))
+    return out
 
 
 def _options(given: RefineOptions, options) -> RefineOptions:
@@ -354,7 +366,7 @@ def _refine_once(
         noisy = () if held else noisy_inputs(used, measured, model.input_names)
         adapt = settings.doubts == "adapt"
         n_obs = int(sum(r.n_samples for r in used)) * len(measured)
-        n_candidates = len(library) if library is not None else max(engine.base.size, 2)
+        n_candidates = library.offered if library is not None else max(engine.base.size, 2)
 
         def per_term(wide):  # a residual correlated with every candidate counts fewer independent samples
             return rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide)

@@ -10,9 +10,12 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import casadi as ca
 import numpy as np
+import sympy as sp
+from sympy.calculus.singularities import singularities
 
 from .._base.errors import ParameterError, expected
 from .._base.rule import complexity
@@ -21,13 +24,41 @@ from .._symbolic.library import Library, Term
 from .engine import Engine
 from .rows import design_rows, term_values
 
-__all__ = ["Rebased", "candidates", "look_alikes", "LOOK_ALIKE", "PER_EQUATION", "prior", "extend"]
+__all__ = ["Rebased", "pole_within", "candidates", "look_alikes", "LOOK_ALIKE", "PER_EQUATION", "prior", "extend"]
+
+
+#: Functions infinite at finite arguments: a term holding one is checked for a pole where the records run.
+POLES = (sp.tan, sp.cot, sp.sec, sp.csc, sp.log)
+
+
+@functools.lru_cache(maxsize=4096)
+def pole_within(expr: sp.Expr, ranges: tuple[tuple[str, float, float], ...]) -> bool:
+    """Whether ``expr`` is infinite somewhere in ``ranges`` (``(name, low, high)`` of each variable, one variable at
+    a time): ``tan(v)`` where ``v`` spans more than ``pi``, ``log(x)`` where ``x`` crosses 0. Only terms holding a
+    function of :data:`POLES` or a negative power are examined (sympy's ``singularities``)."""
+    if not (expr.has(*POLES) or any(p.exp.is_negative for p in expr.atoms(sp.Pow))):
+        return False
+    for name, low, high in ranges:
+        symbol = next((s for s in expr.free_symbols if str(s) == name), None)
+        if symbol is None or not low < high:
+            continue
+        try:
+            if singularities(expr, symbol, sp.Interval(low, high)) != sp.S.EmptySet:
+                return True
+        except (NotImplementedError, TypeError, ValueError):  # sympy cannot tell: the term stays a candidate
+            continue
+    return False
 
 
 class Rebased:
-    """A library's terms written in a model's own symbols (matched by name), as far as refinement reads it."""
+    """A library's terms written in a model's own symbols (matched by name), as far as refinement reads it.
 
-    def __init__(self, library: Library, model: IdentifiedModel):
+    With ``ranges`` (``{variable: (low, high)}`` over the records), a term infinite within them is left out: no
+    simulation passes through its pole (``tan(v)`` of a velocity spanning +-40 once set the fixed-step integrator
+    to its cap of 32 substeps, through its slope near a pole, and made every pass of the fit eight times longer).
+    """
+
+    def __init__(self, library: Library, model: IdentifiedModel, ranges: dict | None = None):
         own = {s.name(): s for s in model.states + model.inputs}
         names = library.variable_names
         missing = [n for n in names if n not in own]
@@ -37,8 +68,15 @@ class Rebased:
                     "library", f"terms of the model's states and inputs {list(own)}", f"terms of {missing}", raw=True
                 )
             )
+        box = tuple(sorted((n, float(a), float(b)) for n, (a, b) in (ranges or {}).items()))
+        poles = [pole_within(t.sympy, box) for t in library.terms]
+        kept = [t for t, pole in zip(library.terms, poles) if not pole]
         old, new = ca.vertcat(*library.variables), ca.vertcat(*(own[n] for n in names))
-        self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in library.terms)
+        self.terms = tuple(Term._from_parts(ca.substitute(t.expr, old, new), t.sympy) for t in kept)
+        #: The library's size: the candidates the penalty counts (a term left out was offered all the same).
+        self.offered = len(library.terms)
+        #: The library's terms left out for a pole within the records' range.
+        self.with_poles = tuple(t.name for t, pole in zip(library.terms, poles) if pole)
         self._by_name = {t.name: t for t in self.terms}
         self.keys = [complexity(t.sympy) for t in self.terms]
 

@@ -9,6 +9,7 @@ evidences are computed on the same records with the same segmentation.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import sympy as sp
@@ -85,9 +86,12 @@ class Engine:
         self.longest: int | None = None
 
     def _sign_rate(self) -> float:
-        """The largest stiffness ``|coef| |J| / eps`` a ``tanh(a / eps)`` standing for ``sign(a)`` adds at ``a = 0``,
-        ``J`` half the term's jump there (1 for ``sign(v)``; largest over the records' rows when it depends on
-        the states or inputs)."""
+        """The largest rate a ``tanh(a / eps)`` standing for ``sign(a)`` adds at ``a = 0``: the stiffness ``K = |coef|
+        |J| / eps`` (``J`` half the term's jump there: 1 for ``sign(v)``; largest over the records' rows when it
+        depends on the states or inputs) where ``a`` holds the equation's own state (``sign(v)`` in ``v'``: an
+        eigenvalue ``-K``), ``sqrt(K)`` where it does not (``sign(x)`` in ``v'`` closes the loop through ``x' = v``:
+        eigenvalues ``+-i sqrt(K)``; counted as ``K``, a spurious ``sign(x)`` took 32 substeps where 7 keep RK4
+        stable)."""
         if not self.settings.smooth:
             return 0.0
         rate = 0.0
@@ -103,7 +107,9 @@ class Engine:
                         size = float(np.max(np.abs(np.broadcast_to(f(*Z.T), Z.shape[:1]))))
                     else:
                         size = abs(float(half))
-                    rate = max(rate, abs(t.coef) * size / width_of(atom.args[0], self.widths))
+                    stiffness = abs(t.coef) * size / width_of(atom.args[0], self.widths)
+                    own = eq.lhs in {str(s) for s in atom.args[0].free_symbols}
+                    rate = max(rate, stiffness if own else math.sqrt(stiffness))
         return rate
 
     def _first_length(self) -> int:
