@@ -12,21 +12,13 @@ import warnings
 
 import numpy as np
 import pytest
+from electronic_duffing import Oscillator, multisine, saturating, training
 from scipy.signal import lfilter
 
 import symsbl
 from symsbl._data.excitation import aperiodic_part, noise_std, period, period_noise_std, quiet_band_std
 from symsbl._data.residuals import residual_test
 from symsbl._refine.diagnostics import noisy_inputs
-
-
-def _multisine(n: int, share: float, rng) -> np.ndarray:
-    """One period of ``n`` samples, random phases, flat on the lines below ``share`` of the sampling rate."""
-    spectrum = np.zeros(n // 2 + 1, complex)
-    lines = np.arange(1, int(share * n))
-    spectrum[lines] = np.exp(2j * np.pi * rng.uniform(size=lines.size))
-    u = np.fft.irfft(spectrum, n)
-    return u / u.std()
 
 
 def _median_of_fourths(x: np.ndarray) -> float:
@@ -42,7 +34,7 @@ def test_quiet_bands_give_the_noise_of_a_multisine_to_a_third_of_the_rate(seed, 
     """0.5 % noise on a multisine to 0.3 or 0.4 fs (one period of 8192 samples): within 10 %, where the fs/4 split
     reads the excitation between 0.25 and 0.4 fs (most of its bins) as noise (over 3 times the truth)."""
     rng = np.random.default_rng(seed)
-    x = _multisine(8192, share, rng) + 0.005 * rng.standard_normal(8192)
+    x = multisine(8192, share, rng) + 0.005 * rng.standard_normal(8192)
     assert quiet_band_std(x) == pytest.approx(0.005, rel=0.1)
     if share > 0.375:  # the excitation fills more than half of the upper half
         assert _median_of_fourths(x) > 3 * 0.005
@@ -59,7 +51,7 @@ def test_periods_give_the_noise_of_a_multisine_that_fills_the_band(seed):
     bands read the excitation, 2.2 % per unit bandwidth here), the difference of periods gives the noise within
     10 %, and :func:`noise_std` takes the smaller."""
     rng = np.random.default_rng(seed)
-    x = np.tile(_multisine(2048, 0.5, rng), 4) + 0.01 * rng.standard_normal(4 * 2048)
+    x = np.tile(multisine(2048, 0.5, rng), 4) + 0.01 * rng.standard_normal(4 * 2048)
     L = period(x)
     assert L == 2048
     assert period_noise_std(x, L) == pytest.approx(0.01, rel=0.1)
@@ -74,7 +66,7 @@ def test_period_is_refused_where_the_record_does_not_repeat():
     assert period(lfilter([1.0], [1.0, -0.9], rng.standard_normal(4000))) is None
     t = np.arange(5000)
     assert period(np.sin(2 * np.pi * t / 100.37) + 1e-3 * rng.standard_normal(t.size)) is None
-    one = _multisine(3000, 0.3, rng)
+    one = multisine(3000, 0.3, rng)
     assert period(np.concatenate([one, one[:2000]])) is None
     assert period(np.column_stack([np.tile(one, 2), np.tile(one[::-1], 2)])) == 3000
 
@@ -83,7 +75,7 @@ def test_the_aperiodic_part_keeps_the_noise_and_drops_the_excitation():
     """Its variance is the noise's (the scaling for the average's share), over P - 1 periods."""
     rng = np.random.default_rng(4)
     noise = 0.1 * rng.standard_normal(8 * 512)
-    x = np.tile(_multisine(512, 0.3, rng), 8) + noise
+    x = np.tile(multisine(512, 0.3, rng), 8) + noise
     part = aperiodic_part(x, 512)
     assert part.shape == (7 * 512,)
     assert part.std() == pytest.approx(0.1, rel=0.05)
@@ -122,33 +114,10 @@ def test_the_loop_test_between_periods_holds_its_level_and_finds_a_loop():
 
 
 def _saturating_record(input_noise: float, seed: int = 0) -> symsbl.Trajectory:
-    """An electronic-Duffing stand-in: ``x'' + 2 zeta w x' + w^2 (x + a x^3 / (1 + (x/s)^2)) = F`` (a hardening
-    that saturates, outside a polynomial library), w = 2 pi 50 rad/s, 610 Hz, a periodic multisine to 0.35 fs
-    (3 periods of 2048, the first dropped as transient), 0.5 % noise on x and v and ``input_noise`` on F (each
-    relative to its spread), simulated by RK4 at 8 substeps with the input linear between samples."""
-    rng = np.random.default_rng(seed)
-    fs, w, zeta, L = 610.0, 2 * np.pi * 50.0, 0.04, 2048
-    u = 2000.0 * np.tile(_multisine(L, 0.35, rng), 3)
-
-    def f(s, force):
-        x, v = s
-        return np.array([v, force - 2 * zeta * w * v - w**2 * (x + 400.0 * x**3 / (1.0 + (x / 0.05) ** 2))])
-
-    h, sub, s, out = 1.0 / (8 * fs), 8, np.zeros(2), np.empty((u.size, 2))
-    for i in range(u.size):
-        out[i] = s
-        u0, u1 = u[i], u[min(i + 1, u.size - 1)]
-        for j in range(sub):
-            a, b = u0 + (u1 - u0) * j / sub, u0 + (u1 - u0) * (j + 1) / sub
-            k1 = f(s, a)
-            k2 = f(s + h / 2 * k1, (a + b) / 2)
-            k3 = f(s + h / 2 * k2, (a + b) / 2)
-            k4 = f(s + h * k3, b)
-            s = s + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    out, u = out[L:], u[L:]
-    states = out + 0.005 * out.std(axis=0) * rng.standard_normal(out.shape)
-    force = u + input_noise * u.std() * rng.standard_normal(u.size)
-    return symsbl.Trajectory(np.arange(u.size) / fs, states, force[:, None], ("x", "v"), ("F",))
+    """An electronic-Duffing stand-in (``tests/electronic_duffing.py``): a hardening that saturates, outside a
+    polynomial library, at 610 Hz, a periodic multisine to 0.35 fs (3 periods of 2048, the first dropped as
+    transient), 0.5 % noise on x and v and ``input_noise`` on F (each relative to its spread)."""
+    return training(Oscillator(saturating), seed, length=2048, periods=3, band=0.35, input_noise=input_noise)
 
 
 @pytest.mark.parametrize(("input_noise", "flagged"), [(0.0005, False), (0.001, False), (0.005, True)])
