@@ -38,17 +38,16 @@ CASES = {"saturating hardening": Oscillator(saturating), "stiffness beyond a cle
 
 def _structure(model: symsbl.IdentifiedModel, entry: symsbl.PathEntry) -> symsbl.IdentifiedModel:
     """``model`` with the terms of a path entry (terms it does not hold start at zero)."""
-    from symsbl._model.estimates import TermEstimate
-
     table = {str(s): s for s in (*model.states, *model.inputs)}
     plain = {k: sp.Symbol(k) for k in table}
+    build = symsbl.TermEstimate
     held = {(eq.lhs, t.name): t for eq in model.equations for t in eq.terms}
     names = dict(entry.terms)
     equations = []
     for eq in model.equations:
         if eq.lhs in names:
             terms = [
-                held.get((eq.lhs, n)) or TermEstimate(symsbl.sympy_to_casadi(sp.sympify(n, locals=plain), table), 0, 0)
+                held.get((eq.lhs, n)) or build(symsbl.sympy_to_casadi(sp.sympify(n, locals=plain), table), 0.0, 0.0)
                 for n in names[eq.lhs]
             ]
             eq = dataclasses.replace(eq, terms=tuple(terms))

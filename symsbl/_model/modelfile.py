@@ -192,12 +192,13 @@ def _check_numbers(doc) -> None:
         items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
         inner = []
         for key, item in items:
+            path = f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]"
             if isinstance(item, (dict, list)):
-                inner.append((item, f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]"))
+                inner.append((item, path))
             elif (digits := _too_large(item)) is not None:
                 raise DataError(
                     expected(
-                        f"{where}.{key}" if isinstance(value, dict) else f"{where}[{key}]",
+                        path,
                         f"a number within a float's range (magnitude below {sys.float_info.max:.2g})",
                         f"an integer of {digits} digits",
                         "correct the number; a model file holds the floats symsbl wrote",
