@@ -54,6 +54,8 @@ def test_process_noise_is_named_and_the_equation_error_reported():
     info = model.metadata["refine"]
     assert any("not white" in d for d in info["doubts"]) and info["short_segments"] is not None
     assert not info["biased"] and model.metadata["estimator"]["used"] == "equation-error"
+    # a random force the record lacks is independent of the trajectory the input drives
+    assert all(t["trajectory"] is not None and t["trajectory"] < 0.01 for t in info["residual"]), info["residual"]
     _check_truth(model, HARDENING.truth())
 
 

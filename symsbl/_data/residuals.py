@@ -24,7 +24,9 @@ __all__ = [
     "prewhitening",
     "innovations",
     "past_removed",
+    "explained_out_of_sample",
     "LEVEL",
+    "MODEL_ERROR",
 ]
 
 
@@ -121,6 +123,11 @@ SPLINE_LAGS = 2
 #: Family-wise level of the residual tests (each test's lags together).
 LEVEL = 0.01
 
+#: Share of the innovations' variance that the model's simulated trajectory predicts out of sample at which their
+#: colour is the model's error. Measured on a hardening oscillator (10 records): with a random force the record
+#: lacks, at most 0.009; with the law outside the library, under a random force, at least 0.155.
+MODEL_ERROR = 0.05
+
 
 @dataclass(frozen=True)
 class ResidualTest:
@@ -142,6 +149,11 @@ class ResidualTest:
     predictable : float
         The share of the residual's variance its own past ``lags`` samples predict (least squares; about
         ``lags / n_samples`` for white noise): how much a whiteness failure matters.
+    trajectory : float
+        The share of the innovations' variance that the model's own simulated trajectory predicts out of sample
+        (:func:`explained_out_of_sample`; below 0 when it predicts nothing; NaN where not computed). At or above
+        :data:`MODEL_ERROR` the residual's colour is the model's error, not a disturbance: a random force the
+        record does not hold is independent of the trajectory the input drives.
     noise_p : float
         Ljung-Box p-value of the channel's noise alone where the record tells it from the response (its
         measured part that does not repeat from period to period under periodic inputs); NaN elsewhere. A
@@ -156,6 +168,7 @@ class ResidualTest:
     lags: int
     predictable: float = 0.0
     noise_p: float = float("nan")
+    trajectory: float = float("nan")
 
     @property
     def white(self) -> bool:
@@ -165,6 +178,11 @@ class ResidualTest:
     def noise_white(self) -> bool:
         """The channel's noise, told from the response between periods, is white (False where not told)."""
         return bool(self.noise_p >= LEVEL)
+
+    @property
+    def model_error(self) -> bool:
+        """The model's own trajectory predicts the innovations (:data:`MODEL_ERROR`): their colour is its error."""
+        return bool(self.trajectory >= MODEL_ERROR)
 
     @property
     def independent(self) -> bool:
@@ -290,3 +308,34 @@ def predictable(e: np.ndarray, lags: int = 25) -> float:
     coef, *_ = np.linalg.lstsq(X, y, rcond=None)
     total = float(y @ y)
     return float(1.0 - np.sum((y - X @ coef) ** 2) / total) if total > 0 else 0.0
+
+
+def explained_out_of_sample(e: np.ndarray, A: np.ndarray, folds: int = 2) -> float:
+    """The share of ``e``'s variance that least squares on the columns of ``A`` ``(n_samples, n_columns)`` predicts
+    in contiguous ``folds``, each fitted on the others (1 - held-out squared error / held-out variance about the
+    training mean). Below 0 when the columns predict nothing: a fit on a coloured residual finds chance
+    correlations in-sample that the held-out fold does not share, which an in-sample share would count.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> A = rng.standard_normal((4000, 3))
+    >>> explained_out_of_sample(A @ [1.0, 0.5, 0.0] + rng.standard_normal(4000), A) > 0.5
+    True
+    >>> explained_out_of_sample(rng.standard_normal(4000), A) < 0.01
+    True
+    """
+    from scipy import linalg
+
+    n = e.size
+    edges = np.linspace(0, n, folds + 1).astype(int)
+    error = total = 0.0
+    for a, b in zip(edges[:-1], edges[1:]):
+        train = np.ones(n, dtype=bool)
+        train[a:b] = False
+        mean = float(np.mean(e[train]))
+        coef = linalg.lstsq(A[train], e[train] - mean, lapack_driver="gelsy")[0]  # QR: 3x faster than an SVD
+        error += float(np.sum((e[a:b] - mean - A[a:b] @ coef) ** 2))
+        total += float(np.sum((e[a:b] - mean) ** 2))
+    return 1.0 - error / total if total > 0 else 0.0

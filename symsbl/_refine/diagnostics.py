@@ -18,7 +18,10 @@ of the fits (0 % under measurement noise). :func:`doubts` lists what says the li
 - the innovations are not white (Ljung-Box, :data:`symsbl._data.residuals.LEVEL`) while independent of the
   inputs (a residual the inputs explain is a missing term, which the selection is there to find) and, where
   the inputs are periodic, the measured noise between periods is not white either (a residual coloured over
-  white noise is the model's error repeating with the excitation, not a disturbance);
+  white noise is the model's error repeating with the excitation, not a disturbance), and the model's own
+  simulated trajectory does not predict them out of sample (:data:`symsbl._data.residuals.MODEL_ERROR`; a
+  disturbance the record lacks is independent of the trajectory the input drives, a law the model lacks is a
+  function of it);
 - an input depends on past residuals (feedback): on a record whose inputs are periodic, between periods (a
   model's error under a periodic input repeats, and a multisine's many lines correlate with it at every lag),
   elsewhere after what the past input explains of the residual is removed;
@@ -32,12 +35,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from itertools import combinations_with_replacement
 
 import numpy as np
 
 from .._base.blas import one_blas_thread
 from .._data.excitation import aperiodic_part, period, relative_noise
-from .._data.residuals import ResidualTest, ljung_box, residual_test
+from .._data.residuals import ResidualTest, explained_out_of_sample, ljung_box, residual_test
 from .noise import innovations
 
 __all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
@@ -61,8 +65,9 @@ def _tests(engine, sol) -> list[ResidualTest]:
     passes = engine.passes
     n = passes.records.n_total
     seg = passes.segments(sol.starts)
+    X = passes.simulate(sol.theta, sol.X0, seg)
     with np.errstate(all="ignore"):
-        R = passes.records.Y - passes.outputs(sol.theta, sol.X0, seg)
+        R = passes.records.Y - passes.observed(X, sol.theta)
     U = passes.UN[:n]
     noise = sol.noise
     p = noise.order
@@ -111,10 +116,70 @@ def _tests(engine, sol) -> list[ResidualTest]:
             loop=(loop_e, loop_inputs) if periodic.any() else None,  # else the same arrays: tested as they are
         )
         between = Y_noise[:, c][np.isfinite(Y_noise[:, c])]
-        if between.size > 4 * LAGS:
-            test = dataclasses.replace(test, noise_p=ljung_box(between, LAGS)[1])
-        out.append(test)
+        noise_p = ljung_box(between, LAGS)[1] if between.size > 4 * LAGS else test.noise_p
+        traced = _traced(R[:, c], X, U, (seg.starts, ends), noise.ar[c] if p else ())
+        out.append(dataclasses.replace(test, noise_p=noise_p, trajectory=traced))
     return out
+
+
+#: Lags of the model's trajectory (besides the present) in the regression that tells its error from a disturbance.
+TRAJECTORY_LAGS = 2
+
+#: Columns of :func:`trajectory_basis` at most: its cubic monomials while they fit, else fewer cross products.
+BASIS_COLUMNS = 120
+
+#: Rows of the trajectory regression at most (every k-th row beyond: each row keeps its own lags).
+TRAJECTORY_ROWS = 50_000
+
+
+def trajectory_basis(X: np.ndarray, U: np.ndarray, scaled_by: tuple | None = None) -> np.ndarray:
+    """Functions of a model's simulated states ``X`` ``(n_samples, n_states)`` and inputs ``U`` that its error may
+    follow: the states' monomials to degree 3 (robustly scaled and clipped, so that a simulation running away in
+    one segment does not dominate; cross products dropped, degree by degree from the highest, while more than
+    :data:`BASIS_COLUMNS`) and the inputs, each scaled by its spread over ``scaled_by`` (states and inputs;
+    default ``X`` and ``U``). A disturbance the record lacks is independent of all of them."""
+    Xs, Us = (X, U) if scaled_by is None else scaled_by
+    with np.errstate(all="ignore"):
+        centre = np.nanmedian(Xs, axis=0)
+        spread = np.nanpercentile(Xs, 75, axis=0) - np.nanpercentile(Xs, 25, axis=0)
+        Z = np.clip(np.nan_to_num((X - centre) / np.where(spread > 0, spread, 1.0)), -10.0, 10.0)
+        mean, scale = np.mean(Us, axis=0), np.std(Us, axis=0)
+    n_states = Z.shape[1]
+    columns = [Z[:, j] ** d for d in (1, 2, 3) for j in range(n_states)]
+    for degree in (2, 3):
+        crossed = [c for c in combinations_with_replacement(range(n_states), degree) if len(set(c)) > 1]
+        if len(columns) + len(crossed) > BASIS_COLUMNS:
+            break
+        columns += [np.prod(Z[:, list(c)], axis=1) for c in crossed]
+    V = np.nan_to_num((U - mean) / np.where(scale > 0, scale, 1.0))
+    return np.column_stack(columns + [V[:, j] for j in range(V.shape[1]) if scale[j] > 0])
+
+
+def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> float:
+    """:func:`symsbl._data.residuals.explained_out_of_sample` of one channel's innovations (its residual ``r``
+    filtered by its noise model's ``ar``, as :func:`symsbl._data.residuals.innovations` does) by
+    :func:`trajectory_basis` of the simulated states ``X`` and inputs ``U`` at the same sample and
+    :data:`TRAJECTORY_LAGS` before, within each segment (``spans``: their starts and ends, each simulated from its
+    own initial state); every k-th sample beyond :data:`TRAJECTORY_ROWS`."""
+    L, p = TRAJECTORY_LAGS, len(ar)
+    step = max(1, r.size // TRAJECTORY_ROWS)
+    es, at = [], []
+    for a, b in zip(*spans):
+        if b - a <= p + 4 * (L + 1):
+            continue
+        at_rows = a + p + np.arange(L, b - a - p, step)
+        e = r[at_rows] + sum(c * r[at_rows - i] for i, c in enumerate(ar, start=1))  # the innovations there
+        keep = np.isfinite(e)
+        es.append(e[keep])
+        at.append(at_rows[keep])
+    if not es:
+        return float("nan")
+    e, where = np.concatenate(es), np.concatenate(at)
+    reference = (X[::step], U[::step])
+    A = np.hstack([trajectory_basis(X[where - k], U[where - k], reference) for k in range(L + 1)])
+    if e.size <= 4 * A.shape[1]:
+        return float("nan")
+    return explained_out_of_sample(e, A)
 
 
 #: An input whose change from period to period is below this share of its spread repeats exactly (a record
@@ -165,6 +230,7 @@ def as_record(t: ResidualTest) -> dict:
         "open_loop": t.open_loop,
         "predictable": float(t.predictable),
         "noise_p": float(t.noise_p) if np.isfinite(t.noise_p) else None,
+        "trajectory": float(t.trajectory) if np.isfinite(t.trajectory) else None,
     }
 
 
@@ -210,8 +276,9 @@ def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
     reasons, loop = [], False
     for t in tests:
         # a residual the input explains is a missing term, and one coloured over a white noise (told between
-        # periods) the model's error: the selection's and the model choice's to judge, not the likelihood's
-        if not t.white and t.independent and not t.noise_white:
+        # periods) or one its own trajectory predicts the model's error: the selection's and the model choice's
+        # to judge, not the likelihood's
+        if not t.white and t.independent and not t.noise_white and not t.model_error:
             reasons.append(
                 f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
                 f"{100 * t.predictable:.2g} % of their variance predictable from their past): "

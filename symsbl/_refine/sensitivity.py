@@ -421,7 +421,10 @@ class Passes:
     def outputs(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated channels of every sample ``(n_total, n_outputs)`` (what ``Y`` measures) from the segments'
         initial states."""
-        X = self.simulate(theta, X0, seg)
+        return self.observed(self.simulate(theta, X0, seg), theta)
+
+    def observed(self, X: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """The channels ``Y`` measures ``(n_total, n_outputs)`` of the simulated states ``X`` ``(n_total, nx)``."""
         index = self.records.state_index
         if index is not None:
             return X[:, list(index)]
