@@ -7,8 +7,9 @@ noise on x and v, 0.05 % on F) and under a band-limited random force to 0.3 fs (
 0.5 % on x and v, none on F), identified with a cubic polynomial library in x and v plus F (it holds neither the
 saturation nor x|x|). Power, on records where the doubt is true (``tests/reference_oscillator.py``, a hardening
 oscillator at 1 kHz, 4 s, a 2-30 Hz multisine, the 22-term library of the real-records benchmark): a digital PD
-loop on the previous sample's measurements with a hidden disturbance of 5 % (closed loop), and 2 % white noise on
-the measured force (a noisy input). Per case over the seeds: how often ``identify`` (its defaults) raised each
+loop on the previous sample's measurements with a hidden disturbance of 5 % (closed loop), a random force of 2 % of
+the input's rms that the record does not hold (process noise: the whiteness doubt), and 2 % white noise on the
+measured force (a noisy input). Per case over the seeds: how often ``identify`` (its defaults) raised each
 doubt (``metadata["refine"]``: ``closed_loop``, ``input_noise``, and a whiteness doubt among ``doubts``), and
 which estimate it reported.
 
@@ -52,6 +53,12 @@ CASES = {
         lambda seed: closed_loop(HARDENING, 1000 + seed),
         library(),
         symsbl.RefineOptions(interpolation="hold"),
+    ),
+    "random force of 2 % hidden (process noise)": (
+        "disturbance",
+        lambda seed: record(HARDENING, 1000 + seed, process=0.02),
+        library(),
+        None,
     ),
     "2 % noise on the measured force": (
         "noisy input",
