@@ -267,7 +267,7 @@ def _how(name: str, pairs, accelerations: dict, columns) -> str:
 
 
 def _noisier(record: Trajectory) -> Trajectory:
-    """``record`` with its own noise added again (each column's white-noise level from its third differences):
+    """``record`` with its own noise added again (each column's white-noise level, :func:`noise_levels`):
     what this adds to an equation's residual is what the noise puts there, the floor of its error."""
     levels = noise_levels(record)
     rng = np.random.default_rng(0)

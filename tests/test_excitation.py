@@ -182,3 +182,19 @@ def test_a_law_outside_the_library_is_not_taken_for_a_disturbance_under_a_random
     assert info["short_segments"] is None and not info["closed_loop"]
     for t in info["residual"]:
         assert not t["white"] and t["trajectory"] > MODEL_ERROR, t
+
+
+def test_noise_levels_tells_the_noise_from_a_multisine_to_a_third_of_the_rate():
+    """The public estimate on a record whose state is a multisine to 0.35 fs with 0.5 % noise (one period of 8192
+    samples) and whose input is the noiseless multisine: the state's within 10 % of the noise added, the input's
+    below a thousandth of it; third differences read the state's excitation as noise (over 5 times the truth)."""
+    from symsbl._data.trajectory import third_difference_std
+
+    rng = np.random.default_rng(5)
+    u = multisine(8192, 0.35, rng)
+    x = u + 0.005 * rng.standard_normal(8192)
+    record = symsbl.Trajectory(np.arange(8192) / 610.0, x[:, None], u[:, None], ("x",), ("F",))
+    levels = symsbl.noise_levels(record)
+    assert levels["x"] == pytest.approx(0.005, rel=0.1)
+    assert levels["F"] < 5e-6
+    assert third_difference_std(x) > 5 * 0.005

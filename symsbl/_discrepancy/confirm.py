@@ -42,7 +42,7 @@ def folds(records) -> list[tuple[list, list]]:
 
 def predictive_log_likelihood(model, record, measured, settings, w: np.ndarray | None) -> float:
     """``log p(record | model)`` with the coefficients fixed, the initial state fitted and noise precisions ``w``
-    (None: the record's own, measured from its third differences)."""
+    (None: the record's own, :func:`symsbl.noise_levels`)."""
     engine = Engine(model, [record], measured, settings, {})
     passes = engine.passes
     starts = passes.segment_starts(record.n_samples)

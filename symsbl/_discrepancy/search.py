@@ -12,7 +12,7 @@ catalogue, library terms) is screened, the leaders are refitted, and the best ad
 - otherwise nothing is added: "unexplained" when the model's residual stands above the measured
   noise level and follows the input (dynamics the search did not find), "nothing missing" when it
   is at the noise level or does not follow the input (correlated measurement noise, which the
-  third-difference noise estimate cannot see).
+  white-noise estimate cannot see).
 
 A library term is chosen only when it beats every catalogue effect; the verdict then says "not in the
 catalogue" and how far the closest named effects fall behind.

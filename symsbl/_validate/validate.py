@@ -128,7 +128,7 @@ class Validation:
         Mean -/+ ``3 sqrt(sd_model**2 + noise_std**2)`` per column of ``simulated``, each
         ``(n_samples, n_columns)``;
         None without a band. It assumes white measurement noise (a filtered or differentiated
-        state has coloured noise, which the third-difference estimate under-reads) and leaves
+        state has coloured noise, which the white-noise estimate under-reads) and leaves
         out the noise of the measured initial state the simulation starts from (negligible
         under forcing, lasting in a free decay).
         """
