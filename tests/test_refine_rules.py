@@ -196,3 +196,21 @@ def test_the_library_is_said_to_lack_the_law_only_when_more_terms_still_buy_a_li
     assert beyond_library([3, 4, 5], richest, 2, 0.005, 0.1) is not None
     assert beyond_library([3, 4, 5], lacking[:3], 2, 0.005, 0.1) is None  # 2.41 -> 2.18 %: a tenth of the gap
     assert beyond_library([3, 4, 5, 6], lacking, 2, 0.01, 0.1) is None  # within 3 times the floor
+
+
+def test_the_library_is_said_to_lack_the_law_when_the_residual_follows_the_trajectory():
+    """The clearance stand-in's path (3 to 6 terms, the richest chosen at 3.74 %, its last term closing more than a
+    tenth of the gap, floor 0.49 %): named when its residual follows the model's simulated trajectory (0.29 of
+    the innovations predicted out of sample, as measured), not when it follows nothing (0.01, a disturbance) or
+    stays within 3 times the floor; the exact model above the floor is not named whatever it follows."""
+    from symsbl._refine.path import beyond_library
+
+    folds = np.array([0.0, 0.001, -0.001, 0.0005, -0.0005])
+    clearance = np.array([0.339 + folds, 0.1356 + folds, 0.0414 + folds, 0.0374 + folds])
+    assert beyond_library([3, 4, 5, 6], clearance, 3, 0.0049, 0.1) is None  # 4.14 -> 3.74 %: over a tenth
+    line = beyond_library([3, 4, 5, 6], clearance, 3, 0.0049, 0.1, follows=0.29)
+    assert line is not None and "3.74 %" in line and "29 % of the innovations" in line
+    assert beyond_library([3, 4, 5, 6], clearance, 3, 0.0049, 0.1, follows=0.01) is None
+    assert beyond_library([3, 4, 5, 6], clearance, 3, 0.02, 0.1, follows=0.29) is None  # within 3 times
+    exact = np.array([0.77 + folds, 0.104 + folds, 0.1045 + folds])
+    assert beyond_library([3, 4, 5], exact, 1, 0.031, 0.1, follows=0.01) is None

@@ -19,6 +19,7 @@ import numpy as np
 from .._base.errors import SimulationError
 from .._base.rule import SelectionRule, mean_errors, paired_se
 from .._data.excitation import period, relative_noise
+from .._data.residuals import MODEL_ERROR
 from .._model import IdentifiedModel, ModelPath, PathEntry
 from .candidates import prior
 from .crossval import cross_validate, folds
@@ -94,13 +95,18 @@ def _noise_floor(passes) -> float:
 BEYOND = 3.0
 
 
-def beyond_library(sizes, E: np.ndarray, chosen: int, floor: float, min_gain: float) -> str | None:
+def beyond_library(
+    sizes, E: np.ndarray, chosen: int, floor: float, min_gain: float, follows: float = float("nan")
+) -> str | None:
     """What the model path says of the library, one line or None: the chosen structure's cross-validated error
     stays above :data:`BEYOND` times the noise ``floor`` (relative errors; ``E`` the fold errors of the path's
-    structures of ``sizes`` terms) while the path's other terms buy little: a richer structure lowers it beyond
-    one standard error but was refused as too small a gain, or the chosen one is the richest and its last term
-    closed less than ``min_gain`` of the gap. An exact model whose folds stay above the floor (three
-    accelerometer records at 3 % noise: 3.4 times) gains nothing from more terms and is not named."""
+    structures of ``sizes`` terms) while its residual follows the model's own simulated trajectory (``follows``:
+    the largest share of a channel's innovations it predicts out of sample, at least
+    :data:`symsbl._data.residuals.MODEL_ERROR`) or the path's other terms buy little: a richer structure lowers
+    it beyond one standard error but was refused as too small a gain, or the chosen one is the richest and its
+    last term closed less than ``min_gain`` of the gap. An exact model whose folds stay above the floor (three
+    accelerometer records at 3 % noise: 3.4 times) gains nothing from more terms, its residual follows nothing,
+    and it is not named."""
     mean = mean_errors(E)
     if floor <= 0 or not np.isfinite(mean[chosen]) or mean[chosen] <= BEYOND * floor:
         return None
@@ -112,14 +118,24 @@ def beyond_library(sizes, E: np.ndarray, chosen: int, floor: float, min_gain: fl
     else:
         last = max((k for k in scored if sizes[k] < sizes[chosen]), key=lambda k: sizes[k], default=None)
         small = last is not None and mean[last] - mean[chosen] < min_gain * (mean[last] - floor)
-    if not small:
+    traced = bool(follows >= MODEL_ERROR)
+    if not (small or traced):
         return None
     best = float(np.min(mean[np.isfinite(mean)]))
-    return (
+    head = (
         f"the chosen structure leaves {100 * mean[chosen]:.3g} % cross-validated error, "
         f"{mean[chosen] / floor:.2g} times the noise floor ({100 * floor:.2g} %), and the best on the path "
-        f"{100 * best:.3g} %: the library does not seem to hold the law (its terms each buy little), or the "
-        "record holds a disturbance (see the doubts); the model is an approximation within the training range"
+        f"{100 * best:.3g} %: the library does not seem to hold the law"
+    )
+    if traced:
+        return (
+            f"{head}: its residual follows the model's own simulated trajectory ({100 * follows:.2g} % of the "
+            "innovations predicted out of sample, which a disturbance would not be); the model is an approximation "
+            "within the training range"
+        )
+    return (
+        f"{head} (its terms each buy little), or the record holds a disturbance (see the doubts); the model is an "
+        "approximation within the training range"
     )
 
 
@@ -252,7 +268,6 @@ def choose_structure(
     floor = _noise_floor(engine.passes)
     chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
     mean = mean_errors(E)
-    lacking = beyond_library(sizes, E, chosen, floor, rule.min_gain)
     best = int(np.argmin(mean))
     path = ModelPath(
         tuple(
@@ -272,7 +287,8 @@ def choose_structure(
     )
     sol = entries[chosen][0]
     if entries[chosen][1] == "evidence":
-        meta = dict(refined.metadata.get("refine", {}), noise_floor=floor, beyond_library=lacking)
+        meta = dict(refined.metadata.get("refine", {}), noise_floor=floor)
+        meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
         return dataclasses.replace(refined, path=path, metadata={**refined.metadata, "refine": meta})
     sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
     meta = dict(refined.metadata.get("refine", {}))
@@ -285,6 +301,13 @@ def choose_structure(
         residual=[as_record(t) for t in residual_tests(engine, sol)],
         chosen_by=reason,
         noise_floor=floor,
-        beyond_library=lacking,
     )
+    meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
     return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
+
+
+def _follows(meta: dict) -> float:
+    """The largest share of a channel's innovations that the model's simulated trajectory predicts, over the
+    residual tests ``meta`` records (NaN when none says)."""
+    shares = [t["trajectory"] for t in meta.get("residual", []) if t.get("trajectory") is not None]
+    return float(max(shares)) if shares else float("nan")
