@@ -129,3 +129,61 @@ def test_every_public_name_has_a_reference_entry():
     documented = set(re.findall(r"^::: symsbl\.(\w+)", text, flags=re.M))
     public = {n for n in symsbl.__all__ if not n.startswith("__") and n not in ("systems",)}
     assert not public - documented, sorted(public - documented)
+
+
+def _hook(name):
+    """A build hook of ``docs/_hooks`` as a module (they import MkDocs only inside their hooks)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"_docs_hook_{name}", DOCS / "_hooks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+#: Pages a reader would rather look at than read: each draws its figures when the site is built.
+FIGURE_PAGES = (
+    "tutorials/identify.md",
+    "tutorials/displacement-only.md",
+    "tutorials/discrepancy.md",
+    "tutorials/hidden-states.md",
+    "how-to/uncertainty.md",
+)
+
+
+def _prose(text):
+    """A page's Markdown without its fenced blocks."""
+    return re.sub(r"^```.*?^```", "", text, flags=re.M | re.S)
+
+
+@pytest.mark.parametrize("page", _pages())
+def test_a_page_that_promises_a_figure_draws_one(page):
+    """Listed pages, and any page with a heading about figures, hold a block that draws one."""
+    text = (DOCS / page).read_text()
+    heading = re.search(r"^#+ .*\bfigures?\b", _prose(text), flags=re.M | re.I)
+    if page in FIGURE_PAGES or heading:
+        assert _hook("figures").promised(text), f"{page} promises a figure but no block draws one"
+
+
+def test_the_build_fails_when_a_page_holds_fewer_figures_than_promised(tmp_path):
+    figures = _hook("figures")
+    block = 'print(html_figure(fig, "a response"))  # markdown-exec: hide'
+    assert figures.promised(f"```python\n{block}\n{block}\n```") == 2
+    assert figures.promised('html_figure(fig, "shown to the reader")') == 0
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "index.html").write_text('<img alt="x" src="data:image/png;base64,AAAA">')
+    assert figures.missing_figures({"a/": 1}, tmp_path) == []
+    assert figures.missing_figures({"a/": 2, "b/": 1}, tmp_path) == ["a/: 1 of 2 figures", "b/: 0 of 1 figures"]
+
+
+def test_the_build_fails_when_maths_would_not_typeset_offline(tmp_path):
+    maths = _hook("offline_maths")
+    assert maths.untypeset({"a/"}, tmp_path) == ["assets/mathjax/tex-chtml.js is missing from the site"]
+    (tmp_path / "assets" / "mathjax").mkdir(parents=True)
+    (tmp_path / "assets" / "mathjax" / "tex-chtml.js").write_text("")
+    (tmp_path / "a").mkdir()
+    page = '<span class="arithmatex">\\(x\\)</span><script src="../javascripts/mathjax.js"></script>'
+    (tmp_path / "a" / "index.html").write_text(page)
+    assert maths.untypeset({"a/"}, tmp_path) == ["a/"]
+    (tmp_path / "a" / "index.html").write_text(page + '<script src="../assets/mathjax/tex-chtml.js"></script>')
+    assert maths.untypeset({"a/"}, tmp_path) == []
