@@ -134,7 +134,10 @@ def test_every_public_name_has_a_reference_entry():
 def _hook(name):
     """A build hook of ``docs/_hooks`` as a module (they import MkDocs only inside their hooks)."""
     import importlib.util
+    import sys
 
+    if str(DOCS / "_hooks") not in sys.path:  # as the build does for the hooks it loads
+        sys.path.insert(0, str(DOCS / "_hooks"))
     spec = importlib.util.spec_from_file_location(f"_docs_hook_{name}", DOCS / "_hooks" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -187,3 +190,20 @@ def test_the_build_fails_when_maths_would_not_typeset_offline(tmp_path):
     assert maths.untypeset({"a/"}, tmp_path) == ["a/"]
     (tmp_path / "a" / "index.html").write_text(page + '<script src="../assets/mathjax/tex-chtml.js"></script>')
     assert maths.untypeset({"a/"}, tmp_path) == []
+
+
+def test_every_charted_benchmark_table_is_on_its_page():
+    """A benchmark page's charts are drawn from its tables: a rewritten page must keep the columns charted."""
+    benchmarks = _hook("benchmarks")
+    assert benchmarks.CHARTS
+    for page, charts in benchmarks.CHARTS.items():
+        text = (DOCS / page).read_text()
+        for chart in charts:
+            found = benchmarks.find_table(text, chart.header)
+            assert found, f"{page}: no table starts with {chart.header!r}"
+            columns, rows, _ = found
+            missing = {chart.x, *chart.ys, *([chart.group] if chart.group else [])} - set(columns)
+            assert not missing and rows, (page, missing)
+    assert benchmarks.number("0.30 (0.51 cold)") == 0.30
+    assert benchmarks.number("1e+04") == 1e4
+    assert benchmarks.number("82.9 ms") == 82.9
