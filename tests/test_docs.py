@@ -207,3 +207,46 @@ def test_every_charted_benchmark_table_is_on_its_page():
     assert benchmarks.number("0.30 (0.51 cold)") == 0.30
     assert benchmarks.number("1e+04") == 1e4
     assert benchmarks.number("82.9 ms") == 82.9
+
+
+#: What the commands print when they doubt a result: each phrase is in the package's source and is
+#: explained on "What the warnings mean" (docs/how-to/warnings.md).
+DOUBTS_PRINTED = (
+    "the residual depends on the input",
+    "the record looks closed-loop",
+    "the measured input is noisy",
+    "the residual is not measurement noise the noise model describes",
+    "its likelihood is doubtful here",
+    "the record is hypersensitive (chaotic-like)",
+    "the equation-error model stands",
+    "such functions run on CasADi's virtual machine instead",
+    "RVM did not converge",
+    "noise model: ",
+    "innovations correlated",
+    "over a white noise between periods",
+    "feedback to ",
+    "output error doubted: ",
+    "fitted on segments of at most",
+    "structure chosen from the model path",
+    "the chosen structure leaves",
+    "indistinguishable here from",
+    "latent state ",
+    "where output error is biased; the equation-error",
+    "ambiguous between",
+    "does not predict held-out records",
+    "nothing missing: no effect gains more than the threshold",
+    "correlated measurement noise",
+    "unexplained: no candidate gains more than the threshold",
+    "this record cannot tell why",
+    "removed ",
+    "replaced ",
+)
+
+
+def test_every_doubt_the_commands_print_is_explained():
+    source = "\n".join(p.read_text() for p in (ROOT / "symsbl").rglob("*.py"))
+    page = " ".join((DOCS / "how-to" / "warnings.md").read_text().split())
+    gone = [p for p in DOUBTS_PRINTED if p not in source]
+    assert not gone, f"no longer printed by symsbl (update docs/how-to/warnings.md and this list): {gone}"
+    unexplained = [p for p in DOUBTS_PRINTED if p not in page]
+    assert not unexplained, f"printed but not explained on docs/how-to/warnings.md: {unexplained}"
