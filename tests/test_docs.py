@@ -146,6 +146,12 @@ def _hook(name):
 
 #: Pages a reader would rather look at than read: each draws its figures when the site is built.
 FIGURE_PAGES = (
+    "index.md",
+    "gallery/paper-systems.md",
+    "gallery/displacement-only.md",
+    "gallery/hidden-friction.md",
+    "gallery/bouc-wen.md",
+    "gallery/emps.md",
     "tutorials/identify.md",
     "tutorials/displacement-only.md",
     "tutorials/discrepancy.md",

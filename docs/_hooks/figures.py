@@ -10,6 +10,7 @@ without the ``docs`` extra.
 """
 
 import base64
+import contextlib
 import html
 import io
 import re
@@ -19,8 +20,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 #: A figure a page's source promises: a hidden call of :func:`html_figure`.
 PROMISE = re.compile(r"^\s*print\(html_figure\(.*#\s*markdown-exec:\s*hide\s*$", flags=re.MULTILINE)
-#: A figure the built page holds.
-FIGURE = re.compile(r'<img [^>]*src="data:image/png;base64,')
+#: A figure the built page holds, or the note that stands for it when the data it needs are not here.
+FIGURE = re.compile(r'<img [^>]*src="data:image/png;base64,|<div class="symsbl-figure-skipped">')
+#: The examples, which the gallery's pages run and import from.
+EXAMPLES = HERE.parents[1] / "examples"
 _promised: dict[str, int] = {}
 
 
@@ -30,6 +33,24 @@ def html_figure(fig, alt: str, *, dpi: int = 110) -> str:
     fig.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
     data = base64.b64encode(buffer.getvalue()).decode("ascii")
     return f'<figure class="symsbl-figure"><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}"></figure>'
+
+
+def html_skipped(reason: str) -> str:
+    """What a page shows instead of a figure whose data are missing (a data set not next to the repository)."""
+    return f'<div class="symsbl-figure-skipped"><p><em>{html.escape(reason)}</em></p></div>'
+
+
+def html_text(text: str) -> str:
+    """Printed text as a block of program output."""
+    return f'<div class="highlight"><pre><code>{html.escape(text.rstrip())}</code></pre></div>'
+
+
+def printed(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` and what it printed: an example's own ``print`` is not a page's."""
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        result = fn(*args, **kwargs)
+    return result, buffer.getvalue()
 
 
 def promised(markdown: str) -> int:
@@ -49,9 +70,10 @@ def missing_figures(promises: dict[str, int], site: Path) -> list[str]:
 
 
 def on_config(config, **kwargs):
-    """Let the pages' code import this module (``from figures import html_figure``)."""
-    if str(HERE) not in sys.path:
-        sys.path.insert(0, str(HERE))
+    """Let the pages' code import this module (``from figures import html_figure``) and the examples."""
+    for folder in (HERE, EXAMPLES):
+        if str(folder) not in sys.path:
+            sys.path.insert(0, str(folder))
     _promised.clear()
     return config
 
