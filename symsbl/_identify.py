@@ -82,7 +82,7 @@ def identify(
         unmeasured: the velocity of a pair in ``kinematics``, or else *latent*, a state with its own
         law that no record holds (the hysteretic force of a Bouc-Wen oscillator). A latent state is
         identified for one position-velocity pair, one input and one record, best of whole periods
-        of a periodic input (see :mod:`symsbl._latent`): ``metadata["latent"]`` then gives the verdict
+        of a periodic input (see *Latent states* in the documentation): ``metadata["latent"]`` then gives the verdict
         ("hidden" or "nothing hidden"), and the model is always refined by output error.
     kinematics : mapping or str, optional
         Position-velocity pairs, ``{"x1": "x2"}`` or ``"x1:x2,x3:x4"``: ``x1' = x2`` holds exactly,

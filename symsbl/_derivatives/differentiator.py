@@ -114,7 +114,7 @@ class Stencil:
 class Differentiator(abc.ABC):
     """How sampled states become regression rows: targets from the states, rows of the dictionary.
 
-    Contract (every strategy; :mod:`symsbl._regression` and the streaming and Dask paths rely on
+    Contract (every strategy; :func:`symsbl.identify` and the streaming and Dask paths rely on
     nothing else):
 
     - ``targets(t, X)`` returns the derivative estimate for each row, ``(n_rows, n_states)``;

@@ -138,7 +138,7 @@ def discrepancy(
     heldout : Trajectory, optional
         Held-out record, ideally at another forcing level; without it the last 30 % of ``data``
         is held out. With output-error evidence both records are evidence, and the choice is
-        confirmed by cross-validation over the halves of both (:mod:`symsbl._discrepancy.confirm`).
+        confirmed by cross-validation over the halves of both.
     effects : sequence of Effect
         The catalogue (default :data:`symsbl.CATALOGUE`; see
         :func:`symsbl.catalogue` to add or remove entries).
@@ -150,7 +150,7 @@ def discrepancy(
         (default: every base equation ``x: v``); effects of the relative motion of two coupled pairs
         are candidates too. A velocity of a pair that ``data`` and ``heldout`` do not hold is unmeasured
         (displacement only): it is estimated from its position for the equation-error start
-        (:func:`symsbl._derivatives.kinematics.estimate_velocity`) and the output error fits the measured states alone.
+        (a smoothing derivative) and the output error fits the measured states alone.
         A third name, ``"x:v:a"``, is a column measuring ``v'`` (an accelerometer): the pair's states are then
         integrated from it for the start and the output error fits the measured acceleration.
     evidence : {"output-error", "equation-error"}, optional

@@ -235,7 +235,7 @@ class IdentifiedModel:
 
     # -- JSON -------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
-        """The JSON document written by ``symsbl identify --json`` (see :mod:`symsbl._model.modelfile`)."""
+        """The JSON document written by ``symsbl identify --json`` (see *The model file* in the documentation)."""
         return model_to_json(self)
 
     def save(self, path: str | Path) -> None:

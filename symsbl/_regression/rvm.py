@@ -79,7 +79,7 @@ class RVM:
         Columns that are always kept (e.g. a bias).
     prune_nats : float, str or None, default "ebic"
         Penalty in nats per term (see the module docstring for its justification and measured
-        false-positive rates). A number, a rule name from :data:`symsbl._base.rule.PENALTIES` (``"ebic"``:
+        false-positive rates). A number, a rule name (``"ebic"``:
         ``1/2 log N + log n_terms``; ``"bic"``: ``1/2 log N``), or ``None``/0 for plain
         SparseBayes v2.
     tol : float, default 1e-3

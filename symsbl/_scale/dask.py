@@ -271,8 +271,8 @@ def dask_stats(
         Names of the state and input columns, in order.
     derivative : str or derivative strategy
         As in :func:`symsbl.stream_stats`; an automatic weak-form window is resolved
-        from the first :data:`symsbl._scale.stream.RESOLVE_SAMPLES` samples of the first record
-        (computed eagerly), as the single-process path does.
+        from the first samples of the first record (computed eagerly), as the single-process
+        path (:func:`symsbl.identify_stream`) does.
     block_samples : int
         Samples per mapped slice (each slice is one task).
     chunk_size : int
