@@ -196,6 +196,18 @@ def test_the_build_fails_when_maths_would_not_typeset_offline(tmp_path):
     assert maths.untypeset({"a/"}, tmp_path) == ["a/"]
     (tmp_path / "a" / "index.html").write_text(page + '<script src="../assets/mathjax/tex-chtml.js"></script>')
     assert maths.untypeset({"a/"}, tmp_path) == []
+    # a page whose Markdown writes mathematics that the build left as text (arithmatex off) fails too
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "index.html").write_text("<p>$x$</p>")
+    assert maths.untypeset(set(), tmp_path, {"b/"}) == ["b/"]
+    assert maths.writes_math("the evidence $\\log p$ and\n$$\nx\n$$")
+    assert not maths.writes_math("costs $5 or $10, `echo $PATH $HOME`\n```bash\necho $A$B\n```")
+
+
+def test_the_explanations_typeset_their_equations():
+    maths = _hook("offline_maths")
+    for page in ("explanation/sparse-bayes.md", "explanation/weak-form.md", "explanation/latent-states.md"):
+        assert maths.writes_math((DOCS / page).read_text()), page
 
 
 def test_every_charted_benchmark_table_is_on_its_page():

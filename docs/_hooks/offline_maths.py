@@ -18,7 +18,17 @@ TARGET = "assets/mathjax"
 SCRIPT = "tex-chtml.js"
 FONTS = "output/chtml/fonts/woff-v2"
 MATH = re.compile(r'class="arithmatex"')
+#: Mathematics in a page's Markdown (``$...$`` or ``$$``), once fenced blocks and code spans are removed.
+WRITTEN = re.compile(r"\$\$|\$[^\s$][^$\n]*?[^\s$\\]\$")
 _pages_with_math: set[str] = set()
+_pages_writing_math: set[str] = set()
+
+
+def writes_math(markdown: str) -> bool:
+    """Whether a page's Markdown holds mathematics for arithmatex (outside code)."""
+    prose = re.sub(r"^```.*?^```", "", markdown, flags=re.M | re.S)
+    prose = re.sub(r"`[^`\n]*`", "", prose)
+    return bool(WRITTEN.search(prose))
 
 
 def source() -> Path:
@@ -41,7 +51,15 @@ def on_files(files, config, **kwargs):
         uri = f"{TARGET}/{path.relative_to(es5).as_posix()}"
         files.append(File.generated(config, uri, abs_src_path=str(path)))
     _pages_with_math.clear()
+    _pages_writing_math.clear()
     return files
+
+
+def on_page_markdown(markdown, page, **kwargs):
+    """Note the pages whose Markdown holds mathematics."""
+    if writes_math(markdown):
+        _pages_writing_math.add(page.url)
+    return markdown
 
 
 def on_page_content(html, page, **kwargs):
@@ -51,15 +69,16 @@ def on_page_content(html, page, **kwargs):
     return html
 
 
-def untypeset(pages: set[str], site: Path) -> list[str]:
-    """Pages of the built ``site`` with mathematics but not the MathJax configuration and script."""
+def untypeset(pages: set[str], site: Path, written: set[str] = frozenset()) -> list[str]:
+    """Pages of the built ``site`` with mathematics but not the MathJax configuration and script, and pages
+    whose Markdown wrote mathematics (``written``) that the built page does not mark for MathJax."""
     if not (site / TARGET / SCRIPT).is_file():
         return [f"{TARGET}/{SCRIPT} is missing from the site"]
     bad = []
-    for url in sorted(pages):
+    for url in sorted(pages | written):
         page = site / (url + "index.html" if url.endswith("/") or not url else url)
         text = page.read_text() if page.is_file() else ""
-        if f"{TARGET}/{SCRIPT}" not in text or "mathjax.js" not in text:
+        if f"{TARGET}/{SCRIPT}" not in text or "mathjax.js" not in text or not MATH.search(text):
             bad.append(url or "index")
     return bad
 
@@ -68,6 +87,6 @@ def on_post_build(config, **kwargs):
     """Fail the build when a page's mathematics could not be typeset offline."""
     from mkdocs.exceptions import PluginError
 
-    bad = untypeset(_pages_with_math, Path(config["site_dir"]))
+    bad = untypeset(_pages_with_math, Path(config["site_dir"]), _pages_writing_math)
     if bad:
         raise PluginError("mathematics that would not typeset: " + "; ".join(bad))
