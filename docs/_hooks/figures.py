@@ -42,7 +42,7 @@ def html_skipped(reason: str) -> str:
 
 def html_text(text: str) -> str:
     """Printed text as a block of program output."""
-    return f'<div class="highlight"><pre><code>{html.escape(text.rstrip())}</code></pre></div>'
+    return f'<div class="language-text highlight"><pre><code>{html.escape(text.rstrip())}</code></pre></div>'
 
 
 def printed(fn, *args, **kwargs):
