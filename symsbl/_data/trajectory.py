@@ -349,11 +349,11 @@ def noise_levels(traj: Trajectory) -> dict[str, float]:
     """White-noise standard deviation of each state and input, told from the excitation.
 
     Where the inputs repeat, half the variance of the difference of two periods; and in the bands of each
-    signal's spectrum that the excitation leaves quiet; the smaller of the two (each an upper bound:
-    :func:`symsbl._data.excitation.noise_std`). Third differences (``std(diff(x, 3)) = sqrt(20) sigma``) read a
-    signal sampled near its bandwidth as noise: 12-16 times the noise on a multisine to 0.35 of the sampling
-    rate, 2-4 times on a 10 Hz sine sampled at 400 Hz; the quiet bands are within 20 % on both, and read up to
-    12 % low on records of 1000 samples (the quietest of few bands).
+    signal's spectrum that the excitation leaves quiet; the smaller of the two (each an upper bound). Third
+    differences (``std(diff(x, 3)) = sqrt(20) sigma``) read a signal sampled near its bandwidth as noise: 12-16
+    times the noise on a multisine to 0.35 of the sampling rate, 2-4 times on a 10 Hz sine sampled at 400 Hz;
+    the quiet bands are within 20 % on both, and read up to 12 % low on records of 1000 samples (the quietest
+    of few bands).
 
     Parameters
     ----------
