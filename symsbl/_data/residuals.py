@@ -11,9 +11,13 @@ record was taken in closed loop.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
+
+from .._base.lsq import Gram, lstsq
 
 __all__ = [
     "effective_fraction",
@@ -213,6 +217,29 @@ class ResidualTest:
 PREWHITEN_ORDER = 30
 
 
+def _remembered(fn):
+    """``fn`` of an array, kept for the arrays of the last :data:`REMEMBERED` calls: every channel of a fit, and
+    every structure fitted to the same records, prewhitens the same inputs."""
+    kept: dict = {}
+
+    @functools.wraps(fn)
+    def inner(u: np.ndarray, *args, **kwargs):
+        u = np.ascontiguousarray(u, dtype=float)
+        key = (hashlib.blake2b(u.tobytes()).digest(), u.shape, args, tuple(sorted(kwargs.items())))
+        if key not in kept:
+            if len(kept) >= REMEMBERED:
+                kept.clear()
+            kept[key] = fn(u, *args, **kwargs)
+        return kept[key].copy()
+
+    return inner
+
+
+#: Inputs whose prewhitening filters are kept.
+REMEMBERED = 8
+
+
+@_remembered
 def prewhitening(u: np.ndarray, max_order: int = PREWHITEN_ORDER) -> np.ndarray:
     """The autoregressive filter ``[1, a_1, ..., a_p]`` that whitens ``u`` (order by BIC up to ``max_order``): a
     coloured input correlates with a residual over many lags at once, and filtering both by the input's
@@ -221,10 +248,14 @@ def prewhitening(u: np.ndarray, max_order: int = PREWHITEN_ORDER) -> np.ndarray:
     x = u - u.mean()
     n = x.size
     best, best_bic = np.ones(1), n * np.log(max(float(x @ x) / n, 1e-300))
-    for p in range(1, min(max_order, n // 10) + 1):
-        X = np.column_stack([x[max_order - i : n - i] for i in range(1, p + 1)])
-        y = x[max_order:]
-        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    top = min(max_order, n // 10)
+    if top < 1:
+        return best
+    y = x[max_order:]
+    lags = Gram(np.column_stack([x[max_order - i : n - i] for i in range(1, top + 1)]), y)  # every order's fit
+    for p in range(1, top + 1):
+        X = lags.X[:, :p]
+        coef = lags.coef(p)
         var = float(np.mean((y - X @ coef) ** 2))
         bic = y.size * np.log(max(var, 1e-300)) + p * np.log(y.size)
         if bic < best_bic:
@@ -291,7 +322,7 @@ def past_removed(e: np.ndarray, u: np.ndarray, order: int) -> np.ndarray:
     if n <= 4 * (order + 1):
         return e
     X = np.column_stack([u[order - k : n - k] for k in range(order + 1)])
-    coef, *_ = np.linalg.lstsq(X, e[order:], rcond=None)
+    coef = lstsq(X, e[order:])
     out = np.full(n, float(np.mean(e)))
     out[order:] = e[order:] - X @ coef
     return out

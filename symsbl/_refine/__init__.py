@@ -26,6 +26,7 @@ import warnings
 
 import numpy as np
 
+from .._base.blas import one_blas_thread
 from .._base.errors import ParameterError, RefineWarning, SimulationError, expected
 from .._base.progress import Progress, stopwatch
 from .._base.rule import DEFAULT as DEFAULT_RULE
@@ -56,6 +57,7 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
     return [records[k] if (a, b) == (0, records[k].n_samples) else records[k].slice(a, b) for k, a, b in plan], note
 
 
+@one_blas_thread()  # many small products and least squares: on busy cores, threads cost more than they bring
 def refine(
     model: IdentifiedModel,
     data,

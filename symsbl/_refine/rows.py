@@ -7,6 +7,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from .._base.casadi import run_chunks
 from .._derivatives.kinematics import completed_columns
 from .._model import IdentifiedModel
 from .problem import resolve_outputs
@@ -47,4 +48,13 @@ def term_values(exprs, model: IdentifiedModel, Z: np.ndarray) -> np.ndarray:
     """Each term evaluated on the rows of ``Z`` (states then inputs), ``(n_rows, n_terms)``."""
     z = ca.vertcat(*model.states, *model.inputs)
     f = ca.Function("terms", [z], [ca.vertcat(*exprs)])
-    return np.asarray(f.map(Z.shape[0])(Z.T)).T
+    n = Z.shape[0]
+    out = np.empty((n, len(exprs)))
+    if n and len(exprs):  # written in place chunk by chunk: a DM of every value costs more than the terms
+        chunk = min(n, CHUNK)
+        run_chunks(f.map(chunk), chunk, [np.ascontiguousarray(Z, dtype=float)], [out])
+    return out
+
+
+#: Rows per call of :func:`term_values`.
+CHUNK = 4096

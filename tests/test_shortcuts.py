@@ -1,0 +1,130 @@
+"""The faster ways of computing what the refinement and its diagnostics need, each against the direct computation
+it replaces: the same numbers (bit for bit where the shortcut falls back to it, to rounding elsewhere)."""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from symsbl import Multisine, paper, simulate, systems, time_grid
+from symsbl._base.blas import one_blas_thread
+from symsbl._base.lsq import GRAM_COND, Gram, lstsq
+from symsbl._data.residuals import PREWHITEN_ORDER, innovations, past_removed, prewhitening
+from symsbl._refine.candidates import partial_cosines
+from symsbl._refine.rows import CHUNK, term_values
+
+
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    with one_blas_thread():
+        yield
+
+
+def _lags(x: np.ndarray, first: int, count: int, top: int) -> np.ndarray:
+    n = x.size
+    return np.column_stack([x[top - i : n - i] for i in range(first, first + count)])
+
+
+def _prewhitening_by_order(u: np.ndarray, max_order: int = PREWHITEN_ORDER) -> np.ndarray:
+    """The filter chosen by BIC, each order fitted on its own by numpy's least squares."""
+    x = u - u.mean()
+    n = x.size
+    best, best_bic = np.ones(1), n * np.log(max(float(x @ x) / n, 1e-300))
+    y = x[max_order:]
+    for p in range(1, min(max_order, n // 10) + 1):
+        X = _lags(x, 1, p, max_order)
+        coef = np.linalg.lstsq(X, y, rcond=None)[0]
+        var = float(np.mean((y - X @ coef) ** 2))
+        bic = y.size * np.log(max(var, 1e-300)) + p * np.log(y.size)
+        if bic < best_bic:
+            best, best_bic = np.concatenate([[1.0], -coef]), bic
+    return best
+
+
+def test_the_normal_equations_agree_with_the_svd_where_well_conditioned():
+    rng = np.random.default_rng(0)
+    X = rng.standard_normal((5000, 12)) * np.arange(1, 13)  # cond(X) about 12
+    y = X @ rng.standard_normal(12) + rng.standard_normal(5000)
+    gram = Gram(X, y)
+    w = np.linalg.eigvalsh(gram.G)
+    assert w[-1] < GRAM_COND * w[0]
+    np.testing.assert_allclose(lstsq(X, y), np.linalg.lstsq(X, y, rcond=None)[0], rtol=1e-11, atol=0)
+    for p in (1, 5, 12):
+        np.testing.assert_allclose(gram.coef(p), np.linalg.lstsq(X[:, :p], y, rcond=None)[0], rtol=1e-11, atol=0)
+
+
+def test_collinear_columns_keep_the_svd_and_its_truncation():
+    t = np.arange(20000) / 32768
+    x = np.sin(2 * np.pi * 10 * t)  # the lags of a sine span two dimensions
+    X, y = _lags(x, 1, 6, 6), x[6:]
+    np.testing.assert_array_equal(Gram(X, y).coef(), np.linalg.lstsq(X, y, rcond=None)[0])
+
+
+@pytest.mark.parametrize("kind", ["sine", "multisine", "ar2", "white"])
+def test_prewhitening_chooses_the_filter_each_order_fitted_alone_chooses(kind):
+    rng = np.random.default_rng(1)
+    n = 20000
+    t = np.arange(n) / 32768
+    u = {
+        "sine": 100 * np.sin(2 * np.pi * 10 * t),
+        "multisine": Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)(t),
+        "ar2": np.convolve(rng.standard_normal(n), [1.0, 0.9, 0.5], "same"),
+        "white": rng.standard_normal(n),
+    }[kind]
+    got, want = prewhitening(u), _prewhitening_by_order(u)
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10)
+    got[:] = 0.0  # the filter kept for the next call of the same input is a copy
+    np.testing.assert_allclose(prewhitening(u), want, rtol=1e-8, atol=1e-10)
+
+
+def test_the_past_input_is_removed_as_numpy_least_squares_removes_it():
+    rng = np.random.default_rng(2)
+    u = np.convolve(rng.standard_normal(30000), [1.0, 0.6], "same")
+    uf = innovations(u, prewhitening(u)[1:])
+    e = rng.standard_normal(uf.size) + 0.3 * np.roll(uf, 3)
+    order = 100
+    X = _lags(uf, 0, order + 1, order)
+    want = e[order:] - X @ np.linalg.lstsq(X, e[order:], rcond=None)[0]
+    got = past_removed(e, uf, order)
+    np.testing.assert_allclose(got[order:], want, rtol=0, atol=1e-10 * np.abs(e).max())
+    np.testing.assert_array_equal(got[:order], np.mean(e))
+
+
+def _projected_cosine(A: np.ndarray, j: int, v: np.ndarray) -> float:
+    """Column ``j`` of ``A`` and ``v``, each less its least-squares fit on ``A``'s other columns."""
+    others = np.delete(A, j, axis=1)
+
+    def rest(x):
+        return x - others @ np.linalg.lstsq(others, x, rcond=None)[0] if others.shape[1] else x
+
+    a, b = rest(A[:, j]), rest(v)
+    return float(abs(a @ b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def test_partial_cosines_are_those_of_each_column_projected_alone():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1, 1, 4000)
+    v = rng.uniform(-1, 1, 4000)
+    A = np.column_stack([x, v, x**3])
+    V = np.column_stack([np.sin(x), np.tan(x), x * np.abs(x), v**2, np.sign(v), x**5, np.exp(x)])
+    got = partial_cosines(A, V)
+    for j in range(A.shape[1]):
+        for k in range(V.shape[1]):
+            assert got[j, k] == pytest.approx(_projected_cosine(A, j, V[:, k]), rel=1e-9, abs=1e-12)
+    assert got[0, 0] > 0.99  # sin(x) looks like x once x^3 is accounted for
+
+
+@pytest.mark.parametrize("n", [1, 700, CHUNK, 2 * CHUNK + 37])
+def test_term_values_are_casadis_evaluation_of_every_row(n):
+    duffing = systems.duffing()
+    library = paper(duffing.states, duffing.inputs, degree=3)
+    train = simulate(duffing, time_grid(1.5, 8192), inputs=Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1))
+    Z = np.column_stack([train.states, train.inputs])[:n]
+
+    class Model:  # term_values reads the symbols only
+        states, inputs = duffing.states, duffing.inputs
+
+    exprs = [t.expr for t in library.terms]
+    f = ca.Function("terms", [ca.vertcat(*duffing.states, *duffing.inputs)], [ca.vertcat(*exprs)])
+    want = np.asarray(f.map(n)(Z.T)).T
+    np.testing.assert_array_equal(term_values(exprs, Model, Z), want)
