@@ -5,6 +5,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+import symsbl
 from symsbl import Multisine, paper, simulate, systems, time_grid
 from symsbl._base.blas import one_blas_thread
 from symsbl._base.lsq import GRAM_COND, Gram, lstsq
@@ -128,3 +129,82 @@ def test_term_values_are_casadis_evaluation_of_every_row(n):
     f = ca.Function("terms", [ca.vertcat(*duffing.states, *duffing.inputs)], [ca.vertcat(*exprs)])
     want = np.asarray(f.map(n)(Z.T)).T
     np.testing.assert_array_equal(term_values(exprs, Model, Z), want)
+
+
+def _duffing_case(seconds: float, fs: float, seed: int = 0):
+    duffing = systems.duffing()
+    train = simulate(
+        duffing, time_grid(seconds, fs), inputs=Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1)
+    ).with_noise(0.01, seed=seed)
+    x1, x2, F = duffing.states[0], duffing.states[1], duffing.inputs[0]
+    library = symsbl.custom([x2, x1, x1**3, x2**3, x1**2, F], [x1, x2, F])
+    return train, library
+
+
+def test_a_trial_step_stopped_once_refused_leaves_every_fit_as_it_was(monkeypatch):
+    """A Levenberg-Marquardt trial ends its pass once the cost summed so far refuses it (the cost only grows); the
+    refinement is the same, bit for bit, as when every trial runs to the end of the record, in fewer samples
+    simulated."""
+    from symsbl._refine.sensitivity import Passes
+
+    train, library = _duffing_case(1.0, 4096)
+    start = symsbl.identify(train, library, refine=False)
+    original = Passes._chunks
+    rows = {"stopped": 0, "whole": 0}
+
+    def counted(self, *args):
+        done = original(self, *args)
+        rows["stopped" if not done else "whole"] += 1
+        return done
+
+    monkeypatch.setattr(Passes, "_chunks", counted)
+    fast = symsbl.refine(start, train, library=library)
+    assert rows["stopped"] > 0, rows
+
+    def whole(self, *args):
+        return original(self, *args[:-1], None)
+
+    monkeypatch.setattr(Passes, "_chunks", whole)
+    slow = symsbl.refine(start, train, library=library)
+    assert str(fast) == str(slow)
+    for a, b in zip(fast.equations, slow.equations):
+        np.testing.assert_array_equal(a.coefs, b.coefs)
+    assert fast.metadata["refine"]["log_evidence"] == slow.metadata["refine"]["log_evidence"]
+
+
+def test_the_model_path_of_long_data_scores_first_stretches_and_keeps_a_fit_on_every_sample(monkeypatch):
+    """Data longer than PATH_SAMPLES: the path fits and cross-validates each record's first stretch, and chooses
+    the same structure here; a structure other than the evidence's is refitted on every sample, to the optimum
+    the refinement of that structure on every sample reaches."""
+    from symsbl._refine import path
+    from symsbl._refine.engine import Settings
+
+    train, library = _duffing_case(2.0, 4096)
+    start = symsbl.identify(train, library, refine=False)
+    whole = symsbl.refine(start, train, library=library)
+    half = train.n_samples // 2
+    monkeypatch.setattr(path, "PATH_SAMPLES", half)
+    seen = []
+    original = path._union
+
+    def union(start, refined, records, measured, settings):
+        seen.append([r.n_samples for r in records])
+        return original(start, refined, records, measured, settings)
+
+    monkeypatch.setattr(path, "_union", union)
+    short = symsbl.refine(start, train, library=library)
+    assert seen == [[half]]
+    assert [eq.names for eq in short.equations] == [eq.names for eq in whole.equations]
+    assert all(eq.n_rows == train.n_samples for eq in short.equations if not eq.fixed)
+
+    measured = ("x1", "x2")
+    engine, alpha, theta0, _ = original(start, whole, [train.slice(0, half)], measured, Settings())
+    sol = engine.fit(engine.base, theta0, alpha)
+    full, refit = path._refitted(engine, sol, [train], measured, cost=0.0)
+    assert full.records[0].n_samples == train.n_samples
+    reference = symsbl.refine(start, train, select=False)
+    got = path.to_model(full, refit, {})
+    for a, b in zip(got.equations, reference.equations):
+        assert a.names == b.names
+        stds = np.array([t.std for t in b.terms])
+        assert np.all(np.abs(a.coefs - b.coefs) < 0.05 * stds), (a.coefs, b.coefs, stds)

@@ -30,7 +30,7 @@ from .result import to_model
 from .selection import _every_term_clears
 from .solver import Solution
 
-__all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND"]
+__all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND", "PATH_SAMPLES"]
 
 #: Backward elimination steps at most.
 MAX_PATH = 12
@@ -228,6 +228,31 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
     return entries
 
 
+#: Samples the path fits and cross-validates at most: longer data (the windows of a long record) contribute each
+#: its first stretch, and a structure other than the evidence's is then refitted on every sample.
+PATH_SAMPLES = 2**17
+
+
+def _shortened(records, most: int) -> list:
+    """Each record's first stretch, in proportion to its length, about ``most`` samples in all (the records
+    themselves when they hold no more)."""
+    total = sum(r.n_samples for r in records)
+    if total <= most:
+        return list(records)
+    return [r.slice(0, max(64, r.n_samples * most // total)) for r in records]
+
+
+def _refitted(engine: Engine, sol, records, measured, cost: float):
+    """The structure of ``sol`` refitted on every sample of ``records``: its engine and solution."""
+    chosen = to_model(engine, sol, {})
+    full = Engine(chosen, records, measured, engine.settings, {})
+    full.longest = engine.longest
+    theta0 = np.zeros(len(full.positions))
+    theta0[full.base] = full.param.theta0[full.base]
+    refit = full.fit(full.base, theta0, prior(full))
+    return full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost)
+
+
 def choose_structure(
     start: IdentifiedModel,
     refined: IdentifiedModel,
@@ -254,14 +279,15 @@ def choose_structure(
     longest : int, optional
         The longest segments of the fits (``refined``'s, when held short).
     """
-    engine, alpha, theta0, by_name = _union(start, refined, records, measured, settings)
+    scored = _shortened(records, PATH_SAMPLES)
+    engine, alpha, theta0, by_name = _union(start, refined, scored, measured, settings)
     engine.longest = longest
     union, fits = _candidates(engine, start, alpha, theta0, by_name)
     cv = folds(engine.passes, engine.length0)
     if union is None or cv is None:
         return refined
     entries = _scored(engine, union, fits, alpha, cv)
-    cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
+    cost = rule.nats_per_term(int(sum(r.n_samples for r in scored)) * len(measured), n_candidates)
     sizes = [int(sol.active.size) for sol, _, _ in entries]
     objectives = [float(sol.posterior.log_evidence) - cost * n for (sol, _, _), n in zip(entries, sizes)]
     E = np.array([e for _, _, e in entries])
@@ -291,6 +317,9 @@ def choose_structure(
         meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
         return dataclasses.replace(refined, path=path, metadata={**refined.metadata, "refine": meta})
     sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
+    if any(a.n_samples != b.n_samples for a, b in zip(scored, records)):
+        cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
+        engine, sol = _refitted(engine, sol, records, measured, cost)
     meta = dict(refined.metadata.get("refine", {}))
     meta.update(
         segment_length=int(sol.length),

@@ -318,7 +318,13 @@ class Passes:
 
     # -- passes --------------------------------------------------------------------------------
     def sensitivities(
-        self, theta: np.ndarray, X0: np.ndarray, seg: Segments, w: np.ndarray, ar: np.ndarray | None = None
+        self,
+        theta: np.ndarray,
+        X0: np.ndarray,
+        seg: Segments,
+        w: np.ndarray,
+        ar: np.ndarray | None = None,
+        stop=None,
     ) -> Blocks:
         """The Gauss-Newton blocks of every segment of ``seg``.
 
@@ -336,6 +342,10 @@ class Passes:
             ``e_t = r_t + sum_i ar[c, i-1] r_{t-i}`` and so is each Jacobian row; the first ``p`` samples of a
             segment (and samples whose lags are not all measured) are left out (the conditional likelihood).
             None or ``p = 0``: white noise.
+        stop : callable, optional
+            ``stop(cost)`` of the cost summed so far (half the weighted squared residuals, which only grow from
+            chunk to chunk): when true, the pass ends there and its blocks carry an infinite cost (a trial step
+            already refused, whatever the rest of the record holds).
         """
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
@@ -360,12 +370,15 @@ class Passes:
         buf.set_res(1, _view(hout))  # type: ignore[call-arg]
         buf.set_res(2, _view(jout))  # type: ignore[call-arg]
         with one_blas_thread():
-            self._chunks(buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual)
+            done = self._chunks(buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual, stop)
+        if not done:
+            rr[:] = np.inf
         return Blocks(H, g, rr, end_S, kept, residual)
 
     @np.errstate(over="ignore", invalid="ignore")  # a simulation that runs away gives non-finite blocks, refused later
-    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual) -> None:
-        """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks."""
+    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None) -> bool:
+        """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks;
+        False when ``stop`` ended the pass early."""
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
         zout, hout, jout = outs
@@ -405,6 +418,9 @@ class Passes:
             last = seg.ends[(seg.ends >= a) & (seg.ends < a + n)]
             if last.size:
                 end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)
+            if stop is not None and stop(0.5 * rr.sum()):
+                return False
+        return True
 
     def per_record(self, w) -> np.ndarray:
         """Noise precisions as ``(n_records, n_outputs)``: a row given once serves every record."""

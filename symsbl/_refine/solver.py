@@ -71,11 +71,12 @@ class Iterate:
         assert self.blocks is not None  # every step evaluates an iterate before it reads the pass
         return self.blocks
 
-    def evaluated(self, passes: Passes) -> tuple[Iterate, int]:
-        """This iterate with its pass made (and the number of passes that took: 0 or 1)."""
+    def evaluated(self, passes: Passes, stop=None) -> tuple[Iterate, int]:
+        """This iterate with its pass made (and the number of passes that took: 0 or 1); ``stop``: see
+        :meth:`~symsbl._refine.sensitivity.Passes.sensitivities`."""
         if self.blocks is not None:
             return self, 0
-        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w, self.ar)), 1
+        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w, self.ar, stop)), 1
 
 
 @dataclass
@@ -187,7 +188,11 @@ class Damping:
 
 
 def _objective(blocks: Blocks, theta, alpha, active) -> float:
-    return blocks.cost + 0.5 * float(np.sum(alpha[active] * theta[active] ** 2))
+    return blocks.cost + _prior_term(theta, alpha, active)
+
+
+def _prior_term(theta, alpha, active) -> float:
+    return 0.5 * float(np.sum(alpha[active] * theta[active] ** 2))
 
 
 def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
@@ -221,7 +226,13 @@ def lm(
             continue
         dth = np.zeros(npar)
         dth[active] = step
-        trial, _ = replace(it, theta=it.theta + dth, X0=it.X0 + dX, blocks=None).evaluated(passes)
+        theta = it.theta + dth
+        prior = _prior_term(theta, alpha, active)
+
+        def refused(cost, E=E, prior=prior, predicted=predicted):  # the cost only grows over the rest of the pass
+            return not accept(E, cost + prior, predicted)[0]
+
+        trial, _ = replace(it, theta=theta, X0=it.X0 + dX, blocks=None).evaluated(passes, stop=refused)
         n_pass += 1
         E_trial = _objective(trial.made, trial.theta, alpha, active)
         taken, rho = accept(E, E_trial, predicted)
