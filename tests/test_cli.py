@@ -29,6 +29,7 @@ def run(argv, capsys):
     return code, out.out, out.err
 
 
+@pytest.mark.slow
 def test_identify_then_simulate(files, capsys):
     before = (files / "train.csv").read_bytes()
     code, out, err = run(
@@ -63,6 +64,7 @@ def test_identify_then_simulate(files, capsys):
     assert errors["status"] == "ok" and max(errors["nrmse"].values()) < 0.005
 
 
+@pytest.mark.slow
 def test_simulate_with_a_predictive_band_and_a_figure(files, tmp_path, capsys):
     pytest.importorskip("matplotlib")
     code, _, err = run(

@@ -98,6 +98,7 @@ NULL_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(NULL_CASES))
 def test_nothing_missing_is_reported_in_at_least_95_percent_of_seeds(case):
     system, channels, base = NULL_CASES[case]

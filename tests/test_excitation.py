@@ -99,6 +99,7 @@ def _loop_record(seed: int, gain: float, periods: int = 8, n: int = 500):
     return e, u
 
 
+@pytest.mark.slow
 def test_the_loop_test_between_periods_holds_its_level_and_finds_a_loop():
     """Over 10 seeds of the record above: no alarm without the loop, every loop of gain 0.5 found, both from the
     parts of the residual and the input that do not repeat."""
@@ -145,6 +146,7 @@ def test_the_period_of_an_oversampled_multisine_is_its_own_not_a_neighbour():
     assert period(u) == 1000
 
 
+@pytest.mark.slow
 def test_a_law_outside_the_library_is_not_taken_for_a_disturbance_on_a_periodic_record():
     """The stand-in with a cubic-polynomial library (it holds neither the saturation nor x|x|), 0.05 % force
     noise: the innovations are not white (the model's error), but the noise between periods is (Ljung-Box of

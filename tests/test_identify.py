@@ -69,6 +69,7 @@ def test_kinematic_identity_is_found_not_assumed():
     assert eq.coefs[0] == pytest.approx(1.0, abs=5 * eq.stds[0] + 1e-3)
 
 
+@pytest.mark.slow
 def test_same_input_same_model():
     lib = paper(symbols("x1 x2"), symbols("F"), degree=3)
     a, b = identify(_duffing_data(), lib), identify(_duffing_data(), lib)
@@ -76,6 +77,7 @@ def test_same_input_same_model():
     np.testing.assert_array_equal(a.equation("x2").coefs, b.equation("x2").coefs)
 
 
+@pytest.mark.slow
 def test_several_trajectories_add_their_rows():
     lib = paper(symbols("x1 x2"), symbols("F"), degree=3)
     one = identify(_duffing_data(0), lib)

@@ -148,6 +148,7 @@ def check_hidden_law(model, case):
         assert law.coef(name) * s ** (1 - degree) == pytest.approx(sign * p[param], rel=0.02), name
 
 
+@pytest.mark.slow
 def test_hidden_bouc_wen_law_found_from_the_position_alone():
     """Exponent 2 in Python (exponent 1 through the command line below)."""
     system = symsbl.systems.bouc_wen(**CASES["n2"])
@@ -160,6 +161,7 @@ def test_hidden_bouc_wen_law_found_from_the_position_alone():
     assert np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std() < 0.01
 
 
+@pytest.mark.slow
 def test_nothing_hidden_in_a_linear_oscillator():
     record, _ = periodic_record(symsbl.systems.linear(m=1.5, c=6.0, k=5e4), noise=0.01)
     model = identify_hidden(record)
@@ -184,6 +186,7 @@ def test_settings_outside_the_one_identified_are_refused():
         symsbl.identify([record, record], library, states=("x1", "x2", "x3"), kinematics="x1:x2")
 
 
+@pytest.mark.slow
 def test_command_line_names_the_latent_state_and_validates_without_it(tmp_path, capsys):
     matplotlib = pytest.importorskip("matplotlib")
     matplotlib.use("Agg")

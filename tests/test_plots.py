@@ -239,6 +239,7 @@ def test_discrepancy_figure_panels(friction_case, tmp_path):
     assert path.stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_discrepancy_figure_equation_error_and_without_records(friction_case):
     report, held = friction_case
     equation = dataclasses.replace(report, error_measure="equation")

@@ -647,6 +647,7 @@ def test_of_two_terms_the_evidence_cannot_tell_apart_the_simpler_is_kept():
     assert symsbl.compare_to_truth(oe, system).exact_support, str(oe)
 
 
+@pytest.mark.slow
 def test_every_runner_up_is_tried_however_many_alternatives_the_terms_have():
     """0.7 x'' + 2.1 x' + 9000 x + 4e5 x^2 - 2e7 x^3 = F (asymmetric, softening), both states, 1 kHz, 2 % noise,
     simulated by scipy: the equation error misses the small cubic (0.4 N of 25 N at the peaks) and ranks it

@@ -133,6 +133,7 @@ def test_a_hypersensitive_record_is_reported_by_identify(chaotic):
     assert symsbl.compare_to_truth(model, symsbl.systems.duffing(k3=1e9, c=1.2)).max_error() < 0.01
 
 
+@pytest.mark.slow
 def test_a_hypersensitive_record_is_validated_over_short_horizons(chaotic, capsys):
     model, held, d = chaotic
     result = symsbl.validate_model(model, held)

@@ -311,6 +311,7 @@ def test_five_percent_noise_linear_oscillator():
     assert truth.exact_support, (truth.missing, truth.spurious, str(model))
 
 
+@pytest.mark.slow
 def test_five_percent_noise_is_not_beyond_the_data():
     """With the weak-form window the automatic rule picks on noise-free data, the same 5 %-noise
     record gives the exact linear oscillator (coefficients within 2 %): the automatic window (chosen
