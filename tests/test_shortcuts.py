@@ -208,3 +208,20 @@ def test_the_model_path_of_long_data_scores_first_stretches_and_keeps_a_fit_on_e
         assert a.names == b.names
         stds = np.array([t.std for t in b.terms])
         assert np.all(np.abs(a.coefs - b.coefs) < 0.05 * stds), (a.coefs, b.coefs, stds)
+
+
+def test_the_residual_tests_of_long_data_read_each_segments_first_stretch():
+    """Up to TEST_SAMPLES every segment is tested whole; past it, each segment's first stretch, in proportion to
+    its length and long enough for the tests' lags, about TEST_SAMPLES samples in all."""
+    from symsbl._refine.diagnostics import LAGS, TEST_SAMPLES, _tested_ends
+
+    starts = np.array([0, 1000, 5000])
+    np.testing.assert_array_equal(_tested_ends(starts, 9000), [1000, 5000, 9000])
+    n = 4 * TEST_SAMPLES
+    starts = np.array([0, 120, n // 4, n // 2])
+    ends = _tested_ends(starts, n)
+    whole = np.append(starts[1:], n) - starts
+    assert np.all(ends > starts) and np.all(ends - starts <= whole)
+    assert ends[0] - starts[0] == min(whole[0], 4 * LAGS)
+    np.testing.assert_array_equal(ends[2:] - starts[2:], whole[2:] // 4)
+    assert abs(int(np.sum(ends - starts)) - TEST_SAMPLES) <= 4 * LAGS
