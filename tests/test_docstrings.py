@@ -36,7 +36,11 @@ RESULTS = {
 }
 
 
-@pytest.mark.parametrize("name", MODULES)
+#: Modules whose examples take tens of seconds (the discrepancy workflow end to end): in the full suite only.
+SLOW = {"_discrepancy.workflow"}
+
+
+@pytest.mark.parametrize("name", [pytest.param(m, marks=pytest.mark.slow) if m in SLOW else m for m in MODULES])
 def test_docstring_examples_run(name):
     if name in EXTRAS:
         pytest.importorskip(EXTRAS[name], reason=f"symsbl.{name}'s examples need the {EXTRAS[name]} extra")

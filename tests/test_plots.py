@@ -250,6 +250,7 @@ def test_discrepancy_figure_equation_error_and_without_records(friction_case):
     assert not ax_a.lines and "pass heldout=" in ax_a.texts[0].get_text()
 
 
+@pytest.mark.slow
 def test_discrepancy_figure_errors(friction_case):
     report, held = friction_case
     with pytest.raises(
