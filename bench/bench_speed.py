@@ -4,7 +4,7 @@
    validated model choice), run as a user runs it: a fresh subprocess, imports and compilation included. Its
    CPU time (user + system, the subprocess's ``RUSAGE_CHILDREN``) and wall time against earlier measurements
    of the same command on this machine kind: main before these changes (commit e0af554, 54.1 s of CPU,
-   ``/usr/bin/time``, load average 2-3) and the issue's figure from before the validated model choice landed
+   ``/usr/bin/time``, load average 2-3) and an earlier measurement from before the validated model choice landed
    (24 s of CPU). Its printed models and table, timings taken out, are compared line by line with the output
    of commit e0af554 (``bench/demo_reference.txt``).
 2. **A 10^7-sample Duffing record** (:mod:`bench_refine`'s part 3: multisine 60 N rms 2-30 Hz, 32768 Hz, 1 %
@@ -13,7 +13,7 @@
    in one BLAS thread: now, and with the model path fitted on every sample refined on (``PATH_SAMPLES`` set
    past the record, the previous behaviour), so that the ratio is measured in one run. Earlier measurements:
    7.9 s before the noise model, residual tests and model path landed; 52 s (49 s of CPU) on main before
-   these changes, from the issue, on a quiet machine.
+   these changes, measured earlier on a quiet machine.
 3. **The fast tier from a fresh clone** (``--tier``): ``git clone`` of this checkout's HEAD into a temporary
    folder, an empty compilation cache (``XDG_CACHE_HOME``), then ``python -m pytest -m "not slow"`` there (two
    xdist workers on two cores), timed from outside.
@@ -40,11 +40,11 @@ from _report import ROOT, one_blas_thread, table, write_page  # noqa: E402  (ben
 
 #: ``symsbl demo`` on main before these changes (commit e0af554): CPU seconds, ``/usr/bin/time``, load 2-3.
 DEMO_MAIN_CPU = 54.1
-#: The same command before the validated model choice landed (CPU seconds, the issue's measurement).
+#: The same command before the validated model choice landed (CPU seconds, an earlier measurement).
 DEMO_BEFORE_CHOICE_CPU = 24.0
-#: 10^7 samples before the noise model, residual tests and model path landed (seconds, the issue's measurement).
+#: 10^7 samples before the noise model, residual tests and model path landed (seconds, an earlier measurement).
 LONG_BEFORE_PATH = 7.9
-#: 10^7 samples on main before these changes (seconds of wall and CPU, the issue's measurement, quiet machine).
+#: 10^7 samples on main before these changes (seconds of wall and CPU, an earlier measurement, quiet machine).
 LONG_MAIN, LONG_MAIN_CPU = 52.0, 49.0
 REFERENCE = Path(__file__).resolve().parent / "demo_reference.txt"
 
