@@ -144,7 +144,7 @@ def tier() -> None:
     with tempfile.TemporaryDirectory(prefix="symsbl_bench_tier_") as tmp:
         clone = Path(tmp) / "clone"
         subprocess.run(["git", "clone", "--quiet", str(ROOT), str(clone)], check=True)
-        head = subprocess.run(["git", "-C", str(clone), "log", "--oneline", "-1"], capture_output=True, text=True)
+        head = subprocess.run(["git", "-C", str(clone), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
         env = dict(os.environ, XDG_CACHE_HOME=str(Path(tmp) / "cache"))
         env.pop("PYTHONPATH", None)
         cmd = [sys.executable, "-m", "pytest", "-m", "not slow", "-q", "-p", "no:cacheprovider", "--durations=15"]
@@ -152,7 +152,7 @@ def tier() -> None:
     lines = done.stdout.strip().splitlines()
     closing = lines[-1] if lines else done.stderr[-500:]
     table(
-        f"Fast tier from a fresh clone ({head.stdout.strip()}), empty compilation cache",
+        f"Fast tier from a fresh clone of commit {head.stdout.strip()}, empty compilation cache",
         ["wall (min)", "CPU (min)", "result"],
         [[f"{wall / 60:.1f}", f"{cpu / 60:.1f}", closing.strip("= ")]],
     )
