@@ -200,3 +200,20 @@ def test_noise_levels_tells_the_noise_from_a_multisine_to_a_third_of_the_rate():
     assert levels["x"] == pytest.approx(0.005, rel=0.1)
     assert levels["F"] < 5e-6
     assert third_difference_std(x) > 5 * 0.005
+
+
+@pytest.mark.slow
+def test_a_stage_that_runs_away_leaves_the_noise_precisions_as_they_were():
+    """6144 samples of the stand-in under a random force, cubic library: the equation error's model (with a
+    spurious ``+5 v^2 x``) runs away on the whole record once the continuation jumps to it. Its noise
+    precisions, re-estimated from that non-finite residual, were NaN and went back with the fit to the last
+    length that did not run away, which then could not be fitted either: a RefineWarning "expected a
+    simulation that stays finite" and the equation error's model. Now the precisions stay as they were and
+    the output error's model is reported with the cubic's support."""
+    x, v, F = symsbl.symbols("x v F")
+    record = extrapolating(Oscillator(saturating), 0, n=6144, growth=(1.0, 1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", symsbl.RefineWarning)
+        model = symsbl.identify(record, symsbl.polynomial([x, v], 3) + symsbl.inputs([F]), kinematics={"x": "v"})
+    assert model.fit is symsbl.FitMethod.OUTPUT_ERROR and model.metadata["estimator"]["used"] == "output-error"
+    assert sorted(model.equation("v").names) == sorted(["x", "v", "x**3", "F"])

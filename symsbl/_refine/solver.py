@@ -336,6 +336,8 @@ def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update
             trial, n1 = trial.evaluated(passes)
             n += n1
         w_new = _reweight(passes, trial, active.size)
+        if not np.all(np.isfinite(w_new) & (w_new > 0)):
+            break  # a residual that is not finite says nothing of the noise: its precisions stay as they were
         if trial is it and np.max(np.abs(np.log(w_new / it.w))) <= 0.02:
             break
         it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=tol)
@@ -503,7 +505,9 @@ def _continuation(
             # this length amplifies state errors past PHI_STOP (the growth outran its prediction): the
             # initial states and coefficients are then nearly collinear; back to the last length that did not
             length, back = previous
-            it = replace(back, w=it.w, blocks=None)  # at the noise precisions reached since
+            # at the noise precisions reached since, unless the longer segments ran away (no precisions)
+            w = it.w if np.all(np.isfinite(it.w)) else back.w
+            it = replace(back, w=w, blocks=None)
             if jumped:  # whole records that grew once fitted: lengthen stage by stage from before the jump
                 stages[-1]["back"], leap, jumped = True, False, False
                 continue
