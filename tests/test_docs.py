@@ -272,7 +272,7 @@ def test_every_doubt_the_commands_print_is_explained():
 
 #: Public docstrings that still name a private module, in modules under edit elsewhere: point them to a public
 #: name or a documentation page, then remove them from here.
-PRIVATE_NAMED = {"RefineOptions": {"symsbl._refine.noise"}, "refine": {"symsbl._refine.screen"}}
+PRIVATE_NAMED: dict = {}
 
 
 def test_the_api_reference_names_public_objects_only():

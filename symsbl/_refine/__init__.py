@@ -97,8 +97,8 @@ def refine(
     select : bool
         Select terms on the output-error evidence (remove terms whose removal raises the evidence by
         more than ``1/2 log N + log M`` nats; add runners-up that raise it). When a state is not
-        measured, library terms are also screened by their output-error score (see
-        :mod:`symsbl._refine.screen`) and the best are tried; ``metadata["refine"]["screened"]``
+        measured, library terms are also screened by their output-error score (see *Displacement only* in the
+        output-error explanation) and the best are tried; ``metadata["refine"]["screened"]``
         lists them.
     interpolation : {"cubic", "linear", "periodic"}
         How the measured input runs between samples: a cubic spline (default; a linear hold biases

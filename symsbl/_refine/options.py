@@ -40,7 +40,7 @@ class RefineOptions:
     noise : {"auto", "white"} or int
         The noise model of the output error: ``"auto"`` (default) an autoregressive filter per measured channel
         whose order is chosen by BIC on the fitted residual (order 0, white noise, when the residual is white),
-        ``"white"``, or a given order (see :mod:`symsbl._refine.noise`).
+        ``"white"``, or a given order (see *A noise model in the likelihood* in the real-records explanation).
     doubts : {"adapt", "report"}
         What a fit does when its residual tests doubt its likelihood (non-white innovations, a noisy measured
         input, a closed loop): ``"adapt"`` (default) refits on short segments, or in a closed loop keeps the
