@@ -186,8 +186,8 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
     if not es:
         return float("nan")
     e, where = np.concatenate(es), np.concatenate(at)
-    reference = (X[::step], U[::step])
-    A = np.hstack([trajectory_basis(X[where - k], U[where - k], reference) for k in range(L + 1)])
+    rows = np.concatenate([where - k for k in range(L + 1)])  # every lag's rows, scaled once together
+    A = np.hstack(np.split(trajectory_basis(X[rows], U[rows], (X[::step], U[::step])), L + 1))
     if e.size <= 4 * A.shape[1]:
         return float("nan")
     return explained_out_of_sample(e, A)
