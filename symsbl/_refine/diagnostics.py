@@ -15,7 +15,8 @@ of spread 0.71-1.36 in every case; the output error's, with its noise model, 0.7
 only and 2-12 under process or input noise, where the innovations' Ljung-Box test rejected whiteness in 80-95 %
 of the fits (0 % under measurement noise). :func:`doubts` lists what says the likelihood does not hold:
 
-- the innovations are not white (Ljung-Box, :data:`symsbl._data.residuals.LEVEL`) while independent of the
+- the innovations are not white (Ljung-Box, :data:`symsbl._data.residuals.LEVEL`), their past predicts at least
+  :data:`symsbl._data.residuals.COLOUR` of their variance (a colour that matters), and they are independent of the
   inputs (a residual the inputs explain is a missing term, which the selection is there to find) and, where
   the inputs are periodic, the measured noise between periods is not white either (a residual coloured over
   white noise is the model's error repeating with the excitation, not a disturbance), and the model's own
@@ -288,8 +289,8 @@ def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
     for t in tests:
         # a residual the input explains is a missing term, and one coloured over a white noise (told between
         # periods) or one its own trajectory predicts the model's error: the selection's and the model choice's
-        # to judge, not the likelihood's
-        if not t.white and t.independent and not t.noise_white and not t.model_error:
+        # to judge, not the likelihood's; a colour its past barely predicts does not matter
+        if not t.white and t.coloured and t.independent and not t.noise_white and not t.model_error:
             reasons.append(
                 f"the innovations of {t.channel} are not white (Ljung-Box p = {t.whiteness_p:.2g}, "
                 f"{100 * t.predictable:.2g} % of their variance predictable from their past): "
