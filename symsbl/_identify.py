@@ -22,11 +22,11 @@ from ._base.errors import DataError, ParameterError, expected
 from ._base.rule import SelectionRule
 from ._data.trajectory import Trajectory, noise_levels
 from ._derivatives.kinematics import complete_states, kinematic_triples, latent_states
-from ._latent import identify_latent
+from ._latent import Fitting, identify_latent
 from ._model import FitMethod, IdentifiedModel
 from ._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
 from ._refine import refine_or_keep
-from ._refine.options import RefineOptions, as_options
+from ._refine.options import RefineOptions, requested
 from ._regression.fit import fit_stats, selection_rule
 from ._regression.path import validated_equations
 from ._regression.rows import as_trajectories, regression_stats
@@ -81,9 +81,12 @@ def identify(
         The model's states, in order (default: the data's). A state absent from the data is
         unmeasured: the velocity of a pair in ``kinematics``, or else *latent*, a state with its own
         law that no record holds (the hysteretic force of a Bouc-Wen oscillator). A latent state is
-        identified for one position-velocity pair, one input and one record, best of whole periods
-        of a periodic input (see *Latent states* in the documentation): ``metadata["latent"]`` then gives the verdict
-        ("hidden" or "nothing hidden"), and the model is always refined by output error.
+        identified for one position-velocity pair and one input, from one record or several jointly, best of
+        whole periods of a periodic input (see *Latent states* in the documentation): ``metadata["latent"]`` then
+        gives the verdict
+        ("hidden" or "nothing hidden"), and the model is always refined by output error: ``refine=False`` and a
+        ``derivative`` other than ``"weak"`` are refused there, and every other option acts (the refinement's
+        options on every branch, the selection rule on the verdict, the screens and the winner's structure).
     kinematics : mapping or str, optional
         Position-velocity pairs, ``{"x1": "x2"}`` or ``"x1:x2,x3:x4"``: ``x1' = x2`` holds exactly,
         the equation is fixed and either member may be unmeasured. A third name, ``"x1:x2:a1"`` (or
@@ -133,7 +136,7 @@ def identify(
     """
     trajectories = as_trajectories(data)
     rule = selection_rule(selection, rvm, equivalence_nats)
-    options = _refine_options(refine, refine_options)
+    options = requested(refine, refine_options)
     algebraic = _algebraic(outputs)
     columns = trajectories[0].state_names
     extra = set(algebraic)
@@ -147,8 +150,9 @@ def identify(
     _check_columns(columns, names, accelerations, algebraic)
     latent = latent_states(names, columns, pairs, accelerations)
     if latent:
-        _check_latent(latent, accelerations, algebraic)
-        return identify_latent(trajectories, library, names, pairs, latent, refine_options=refine_options)
+        asked = _check_latent(latent, accelerations, algebraic, derivative, options)
+        fitting = Fitting(options=asked, rule=rule, rvm=rvm, chunk_size=chunk_size, jit=jit)
+        return identify_latent(trajectories, library, names, pairs, latent, fitting)
     present = {v: a for v, a in accelerations.items() if a in columns}
     completed, unmeasured = complete_states(
         trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
@@ -184,8 +188,29 @@ def identify(
     return _reported(model, refined, completed, problem, rvm, rule, estimated=bool(unmeasured))
 
 
-def _check_latent(latent, accelerations: dict, algebraic: tuple) -> None:
-    """Latent states are identified from position records only."""
+def _check_latent(latent, accelerations: dict, algebraic: tuple, derivative, options) -> RefineOptions:
+    """The refinement's options of the latent path, once what it cannot honour is refused (every other option acts
+    on it: see :class:`symsbl._latent.Fitting`): latent states are identified from position records only, by
+    output error, their law screened on the weak form of the record."""
+    if options is None:
+        raise ParameterError(
+            expected(
+                "refine",
+                "True or a RefineOptions when a state is latent (its law is chosen by output error on what is "
+                "measured: there is no equation-error model to return)",
+                False,
+                "drop refine=False (--no-refine)",
+            )
+        )
+    if not (isinstance(derivative, str) and derivative == "weak"):
+        raise ParameterError(
+            expected(
+                "derivative",
+                "'weak' when a state is latent (its law is screened on the weak form of the record's periods)",
+                derivative,
+                "drop derivative (--derivative, --overlap)",
+            )
+        )
     if accelerations or algebraic:
         given = list(accelerations.values()) + list(algebraic)
         raise ParameterError(
@@ -197,6 +222,7 @@ def _check_latent(latent, accelerations: dict, algebraic: tuple) -> None:
                 raw=True,
             )
         )
+    return options
 
 
 def _reported(
@@ -297,24 +323,3 @@ def _folds(records) -> list:
         cuts = (np.arange(k + 1) * r.n_samples) // k
         out += [r.slice(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:])]
     return out
-
-
-def _refine_options(refine, refine_options) -> RefineOptions | None:
-    """The refinement's options from ``identify``'s ``refine`` and ``refine_options`` (None: no refinement)."""
-    if isinstance(refine, RefineOptions):
-        if refine_options is not None:
-            raise ParameterError(
-                expected(
-                    "refine_options",
-                    "the refinement's options given once",
-                    "both refine=RefineOptions(...) and refine_options",
-                    "pass only one",
-                    raw=True,
-                )
-            )
-        return as_options(refine, "refine")
-    if not isinstance(refine, (bool, np.bool_)):
-        raise ParameterError(expected("refine", "True, False or a RefineOptions", refine))
-    if not refine:
-        return None
-    return as_options(refine_options)

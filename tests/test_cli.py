@@ -188,6 +188,17 @@ def test_library_file(files, capsys, tmp_path):
         ),
         (
             None,
+            ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2", "--no-refine"],
+            r"refine: expected True or a RefineOptions when a state is latent .*, received False; drop refine=False "
+            r"\(--no-refine\)$",
+        ),
+        (
+            None,
+            ["--states", "x1,x2,z", "--inputs", "F", "--kinematics", "x1:x2", "--derivative", "central"],
+            r"derivative: expected 'weak' when a state is latent .*, received 'central'; drop derivative",
+        ),
+        (
+            None,
             ["--states", "q,x2", "--inputs", "F", "--kinematics", "q:x2"],
             r"--states q: expected a column of DATA \(the position of each --kinematics pair is measured; its velocity "
             r"and latent states may be absent\), received no such column$",

@@ -72,6 +72,19 @@ def test_cluster_model_equals_the_single_process_model(client, record):
         np.testing.assert_allclose(a.coefs, b.coefs, rtol=1e-10)
 
 
+def test_cluster_identification_takes_identifys_options(client, record):
+    """A RefineOptions, a selection rule and kinematics act as in the single-process front end."""
+    from symsbl import RefineOptions, SelectionRule
+
+    asked = dict(
+        refine=RefineOptions(noise="white"), selection=SelectionRule(model_choice="evidence"), kinematics="x1:x2"
+    )
+    ref = identify_stream(record, LIB, **asked)
+    got = identify_dask(_array(record, 1500), LIB, **NAMES, **asked)
+    assert got.equation("x1").fixed and str(got) == str(ref)
+    assert got.metadata["refine"]["noise"]["x1"]["model"] == "white"
+
+
 def test_delayed_chunks_and_several_records(client, record):
     pieces = [dask.delayed(record.slice)(a, min(a + 1300, record.n_samples)) for a in range(0, record.n_samples, 1300)]
     other = record.slice(0, 2000)

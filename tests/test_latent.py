@@ -162,6 +162,23 @@ def test_hidden_bouc_wen_law_found_from_the_position_alone():
 
 
 @pytest.mark.slow
+def test_two_records_at_two_levels_jointly():
+    """A test campaign: the hysteresis at 25 N and 45 N rms, fitted jointly, each record from its own initial
+    state; the law is screened on the larger, and the model holds at a level between them."""
+    system = symsbl.systems.bouc_wen(**CASES["n1"])
+    low, _ = periodic_record(system, rms=25.0, seed=3, noise=0.01, noise_seed=8)
+    high, _ = periodic_record(system, rms=45.0, seed=4, noise=0.01, noise_seed=9)
+    model = identify_hidden([low, high])
+    check_hidden_law(model, "n1")
+    info = model.metadata["latent"]
+    assert info["records"] == 2 and info["screened_on"] == 1
+    assert len(model.metadata["refine"]["noise"]["x1"]["innovation_std_by_record"]) == 2
+    truth = steady_state(system, 35.0, seed=11)
+    predicted = steady_state(model.to_system(), 35.0, seed=11)
+    assert np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std() < 0.005
+
+
+@pytest.mark.slow
 def test_nothing_hidden_in_a_linear_oscillator():
     record, _ = periodic_record(symsbl.systems.linear(m=1.5, c=6.0, k=5e4), noise=0.01)
     model = identify_hidden(record)
@@ -182,8 +199,51 @@ def test_settings_outside_the_one_identified_are_refused():
     library = symsbl.paper([x1, x2, x3, x4], [F], degree=2)
     with pytest.raises(symsbl.DataError, match=r"^states: expected a position, its velocity and one latent state"):
         symsbl.identify(record, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
-    with pytest.raises(symsbl.DataError, match=r"^data: expected one record when a state is latent, received 2"):
-        symsbl.identify([record, record], library, states=("x1", "x2", "x3"), kinematics="x1:x2")
+
+
+def test_options_the_latent_path_cannot_honour_are_refused_in_one_line():
+    """No equation-error model to return, no derivative but the record's own weak form; refused before any work."""
+    t = np.arange(64) / FS
+    record = symsbl.Trajectory(t, np.sin(t)[:, None], np.cos(t)[:, None], ("x1",), ("F",))
+    x1, x2, x3, F = symsbl.symbols("x1 x2 x3 F")
+    library = symsbl.paper([x1, x2, x3], [F], degree=2)
+    kw = dict(states=("x1", "x2", "x3"), kinematics="x1:x2")
+    with pytest.raises(symsbl.ParameterError, match=r"^refine: expected True or a RefineOptions when a state is lat"):
+        symsbl.identify(record, library, refine=False, **kw)
+    for derivative in ("central", symsbl.WeakForm(overlap=2)):
+        with pytest.raises(symsbl.ParameterError, match=r"^derivative: expected 'weak' when a state is latent"):
+            symsbl.identify(record, library, derivative=derivative, **kw)
+
+
+def test_branch_options_are_the_callers_with_the_latent_paths_defaults_resolved():
+    from symsbl._latent import Fitting
+
+    default = Fitting().branch_options(periodic=True, substeps=4)
+    assert (default.interpolation, default.substeps, default.doubts) == ("periodic", 4, "report")
+    assert Fitting().branch_options(periodic=False, substeps=4).interpolation == "cubic"
+    asked = Fitting(options=symsbl.RefineOptions(interpolation="hold", substeps=7, noise="white", max_samples=999))
+    given = asked.branch_options(periodic=True, substeps=4)
+    assert (given.interpolation, given.substeps, given.noise, given.max_samples) == ("hold", 7, "white", 999)
+    assert Fitting(rule=symsbl.SelectionRule(penalty=12.5)).template.prune_nats == 12.5
+    assert Fitting(rvm=symsbl.RVM(tol=1e-5)).template.get_params()["tol"] == 1e-5
+
+
+@pytest.mark.slow
+def test_every_option_acts_on_the_latent_path():
+    """The refinement's options reach the branches, the rule's model choice the winner (an extra refinement
+    only when the rule is not the branches' own), and the options are recorded as used."""
+    system = symsbl.systems.bouc_wen(**CASES["n1"])
+    record, _ = periodic_record(system, noise=0.01)
+    asked = identify_hidden(record, refine_options=symsbl.RefineOptions(noise="white", interpolation="hold"))
+    info = asked.metadata["refine"]
+    assert info["interpolation"] == "hold" and info["noise"]["x1"]["model"] == "white"
+    assert "as asked" in asked.metadata["latent"]["seconds"]
+    by_evidence = identify_hidden(record, selection=symsbl.SelectionRule(model_choice="evidence"))
+    assert "as asked" not in by_evidence.metadata["latent"]["seconds"]
+    check_hidden_law(by_evidence, "n1")
+    # a penalty no law can pay: the verdict is the caller's
+    strict = identify_hidden(record, selection=symsbl.SelectionRule(penalty=1e7, model_choice="evidence"))
+    assert strict.metadata["latent"]["verdict"].startswith("nothing hidden")
 
 
 @pytest.mark.slow

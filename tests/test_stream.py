@@ -136,6 +136,26 @@ def test_streamed_model_equals_in_memory_model(record):
         np.testing.assert_allclose(a.coefs, b.coefs, rtol=1e-10)
 
 
+def test_streamed_identification_takes_identifys_options(record):
+    """The rule, the refinement's options (a RefineOptions, as identify takes them) and declared kinematics give
+    the in-memory model; kinematics with a member the records lack is refused in one line."""
+    from symsbl import RefineOptions, SelectionRule
+
+    asked = dict(
+        refine=RefineOptions(noise="white", substeps=2),
+        selection=SelectionRule(model_choice="evidence"),
+        kinematics="x1:x2",
+    )
+    ref = identify(record, LIB, **asked)
+    got = identify_stream(chunked(_pieces(record, (1500,))), LIB, **asked)
+    assert got.equation("x1").fixed and str(got) == str(ref)
+    assert got.metadata["refine"]["noise"]["x1"]["model"] == "white"
+    for a, b in zip(got.equations, ref.equations):
+        np.testing.assert_allclose(a.coefs, b.coefs, rtol=1e-10)
+    with pytest.raises(DataError, match=r"^kinematics: expected position:velocity pairs of measured states"):
+        identify_stream(chunked(_pieces(record, (1500,))), LIB, kinematics="x1:x2:a1", refine=False)
+
+
 # ------------------------------------------------------------------------------------------- errors
 
 

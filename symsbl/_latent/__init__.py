@@ -36,13 +36,14 @@ from .._base.errors import DataError, SimulationError, expected
 from .._base.rule import SelectionRule
 from .._model import IdentifiedModel
 from .._refine import RefineOptions, refine
+from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
 from .branches import Branches, Screened
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
 from .skeleton import fit_linear, split
 
-__all__ = ["identify_latent", "Periods", "Spectra", "split_periods", "whole_record"]
+__all__ = ["identify_latent", "Fitting", "Periods", "Spectra", "split_periods", "whole_record"]
 
 #: RK4 resolution of the input's fastest line, ``omega_max h``: the response is driven up to ``f_max``, which
 #: the model's own modes (what ``substeps="auto"`` looks at) do not see; RK4's phase error per step is
@@ -53,7 +54,7 @@ INPUT_RESOLUTION = 0.35
 
 
 def _check_setting(trajectories, names, pairs, latent, library: Library):
-    """The one setting identified: one record, one position-velocity pair, one latent state, one input."""
+    """The one setting identified: one position-velocity pair, one latent state, one input."""
     if len(latent) != 1 or len(pairs) != 1 or len(names) != 3:
         raise DataError(
             expected(
@@ -64,8 +65,6 @@ def _check_setting(trajectories, names, pairs, latent, library: Library):
                 raw=True,
             )
         )
-    if len(trajectories) != 1:
-        raise DataError(expected("data", "one record when a state is latent", f"{len(trajectories)} records", raw=True))
     record = trajectories[0]
     position = pairs[0][0]
     if position not in record.state_names:
@@ -88,15 +87,61 @@ def _check_setting(trajectories, names, pairs, latent, library: Library):
         )
 
 
-def identify_latent(trajectories, library: Library, names, pairs, latent, *, refine_options=None) -> IdentifiedModel:
+@dataclasses.dataclass(frozen=True)
+class Fitting:
+    """How ``identify`` asked for the fit: each of its options as the latent path applies it.
+
+    Attributes
+    ----------
+    options : RefineOptions
+        The caller's refinement options. The branches are refined with them, except that their doubts are
+        reported (their evidences compare on one likelihood), ``substeps="auto"`` resolves the input's band
+        (:data:`INPUT_RESOLUTION`) and the default ``"cubic"`` interpolation is ``"periodic"`` on a record of whole
+        periods; the winning branch is then refined with them as given.
+    rule : SelectionRule
+        The caller's rule: its penalty settles the verdict and the screens, its model choice the winner's
+        structure.
+    rvm : RVM, optional
+        Template of the screens' relevance vector machines.
+    chunk_size, jit :
+        The screens' term evaluation (:class:`~symsbl.Evaluator`).
+    """
+
+    options: RefineOptions = RefineOptions()
+    rule: SelectionRule = SelectionRule()
+    rvm: RVM | None = None
+    chunk_size: int = 4096
+    jit: object = "auto"
+
+    @property
+    def template(self) -> RVM:
+        """The screens' relevance vector machine: the template's options with the rule's penalty."""
+        return RVM(**dict((self.rvm or RVM()).get_params(), prune_nats=self.rule.penalty))
+
+    def branch_options(self, periodic: bool, substeps: int) -> RefineOptions:
+        """The options every branch is refined with."""
+        given = self.options
+        interpolation = "periodic" if periodic and given.interpolation == "cubic" else given.interpolation
+        return dataclasses.replace(
+            given,
+            interpolation=interpolation,
+            substeps=substeps if given.substeps == "auto" else given.substeps,
+            doubts="report",
+        )
+
+
+def identify_latent(
+    trajectories, library: Library, names, pairs, latent, fitting: Fitting = Fitting()
+) -> IdentifiedModel:
     """Identify a single-degree-of-freedom oscillator with one latent state from its position alone.
 
     Parameters
     ----------
     trajectories : list of Trajectory
-        One record holding the position and the input: whole periods of a periodic input (best: the
-        noise is then measured by the periods' scatter and the derivatives are exact), or a transient
-        record of a broadband input.
+        Records holding the position and the input: whole periods of a periodic input (best: the
+        noise is then measured by the periods' scatter and the derivatives are exact), or transient
+        records of a broadband input. The law is screened on the record whose position varies most; every
+        branch is refined on all of them jointly, each from its own initial state.
     library : Library
         Candidates over the states and the input; the law of the latent state uses its homogeneous
         terms in (velocity, latent), the memoryless alternative its homogeneous terms in (position, velocity).
@@ -106,8 +151,8 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
         The one position-velocity pair.
     latent : sequence of str
         The one latent state.
-    refine_options : dict, optional
-        Keyword arguments of :func:`symsbl.refine` for every branch.
+    fitting : Fitting
+        The caller's options, rule and screens.
 
     Returns
     -------
@@ -117,34 +162,60 @@ def identify_latent(trajectories, library: Library, names, pairs, latent, *, ref
     """
     _check_setting(trajectories, names, pairs, latent, library)
     clock = _Clock()
-    record = trajectories[0]
-    (y, v), z, u = pairs[0], latent[0], record.input_names[0]
-    split = split_periods(record.t, record.column(u), record.column(y))
-    periodic = split is not None
-    periods = split if split is not None else whole_record(record.t, record.column(u), record.column(y))
-    stages = _screen(Spectra(periods, periodic), library, y, v, z, u, clock)
+    (y, v), z, u = pairs[0], latent[0], trajectories[0].input_names[0]
+    cuts, periodic, lead = _periods_of(trajectories, y, u)
+    periods = cuts[lead]
+    stages = _screen(Spectra(periods, periodic), library, (y, v, z, u), fitting, clock)
     symbols = {s.name(): s for s in library.variables}
     builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
     starts = builder.starts(stages)
     substeps = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
-    # the branches' evidences compare on one likelihood: doubts are reported, not adapted to
-    options = {
-        "interpolation": "periodic" if periodic else "cubic",
-        "substeps": substeps,
-        "doubts": "report",
-        **(refine_options or {}),
-    }
-    data = record.slice(periods.start)
-    fits, caught, failed = _refine_branches(starts, data, stages.candidates(library.variables), options, clock)
-    verdict, best, scores = builder.verdict(fits, data.n_samples, stages.n_candidates)
+    options = fitting.branch_options(periodic, substeps)
+    data = [r.slice(c.start) for r, c in zip(trajectories, cuts)]
+    candidates = stages.candidates(library.variables)
+    rule = dataclasses.replace(fitting.rule, model_choice="evidence")
+    fits, caught, failed = _refine_branches(starts, data, candidates, options, rule, clock)
+    verdict, best, scores = builder.verdict(fits, sum(d.n_samples for d in data), stages.n_candidates, fitting.rule)
     for w in caught[best]:  # the losing branches' warnings say only that they lose
         warnings.warn(w.message, w.category, stacklevel=3)
-    final = builder.with_latent(fits[best], keep=(verdict == "hidden"))
+    chosen = _as_asked(fits[best], data, candidates.get(best), options, fitting, clock)
+    final = builder.with_latent(chosen, keep=(verdict == "hidden"))
     summary = _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
+    summary.update(records=len(data), screened_on=lead)
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
 
 
-def _refine_branches(starts, data, candidates, options, clock):
+def _periods_of(trajectories, y: str, u: str):
+    """Each record's whole periods (or the record whole), whether every record is periodic, and the record the
+    law is screened on: the one whose position varies most (where a nonlinear law shows most)."""
+    splits = [split_periods(r.t, r.column(u), r.column(y)) for r in trajectories]
+    periodic = all(c is not None for c in splits)
+    cuts = [
+        c if periodic and c is not None else whole_record(r.t, r.column(u), r.column(y))
+        for r, c in zip(trajectories, splits)
+    ]
+    lead = int(np.argmax([np.std(r.column(y)) for r in trajectories]))
+    return cuts, periodic, lead
+
+
+def _as_asked(fit: IdentifiedModel, data, library, options: RefineOptions, fitting: Fitting, clock) -> IdentifiedModel:
+    """The winning branch refined once more with the caller's doubts and model choice, where they differ from the
+    branches' (which report their doubts and choose by evidence)."""
+    doubted = bool(fit.metadata["refine"].get("doubts")) and fitting.options.doubts != "report"
+    if not options.select or (fitting.rule.model_choice == "evidence" and not doubted):
+        return fit
+    asked = dataclasses.replace(options, doubts=fitting.options.doubts)
+    try:
+        again = refine(fit, data, library=library, options=asked, selection=fitting.rule)
+    except (SimulationError, np.linalg.LinAlgError) as error:  # the branch's own fit stands, and says why
+        meta = dict(fit.metadata["refine"], as_asked=f"failed: {error}")
+        return dataclasses.replace(fit, metadata=dict(fit.metadata, refine=meta))
+    finally:
+        clock("as asked")
+    return again
+
+
+def _refine_branches(starts, data, candidates, options: RefineOptions, rule: SelectionRule, clock):
     """Each branch refined from its start on ``data``: the fits, the warnings of each, the branches that failed."""
     fits, caught = {}, {}
     failed = {}
@@ -152,9 +223,7 @@ def _refine_branches(starts, data, candidates, options, clock):
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
             try:
-                fits[name] = refine(
-                    start, data, library=candidates.get(name), options=RefineOptions(**options), selection=BRANCH_RULE
-                )
+                fits[name] = refine(start, data, library=candidates.get(name), options=options, selection=rule)
             except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
                 failed[name] = str(error)
         clock(f"{name} branch")
@@ -194,13 +263,10 @@ def _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
     }
 
 
-#: The branches compare by their evidences: each keeps the structure its own evidence selects.
-BRANCH_RULE = SelectionRule(model_choice="evidence")
-
-
-def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, clock) -> Screened:
+def _screen(spectra: Spectra, library: Library, channels, fitting: Fitting, clock) -> Screened:
     """Stages 1-3: the linear skeleton, its split from the hidden force, and the screens of the hidden law and of
-    the memoryless alternative."""
+    the memoryless alternative; ``channels`` names the position, velocity, latent state and input."""
+    y, v, z, u = channels
     linear = fit_linear(spectra)
     clock("linear skeleton")
     symbols = {s.name(): s for s in library.variables}
@@ -210,7 +276,7 @@ def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, 
     force_terms = homogeneous_terms(library.terms, {y, v}, exclude={y, v, "1"})
     weak = WeakForm(spectra)
     samples = {y: spectra.y, v: spectra.v, u: spectra.u}
-    law_columns = evaluate(law_terms, library.variables)
+    law_columns = evaluate(law_terms, library.variables, fitting.chunk_size, fitting.jit)
 
     def columns_of(zvalues):
         return law_columns({**samples, z: zvalues})
@@ -218,11 +284,16 @@ def _screen(spectra: Spectra, library: Library, y: str, v: str, z: str, u: str, 
     linear_column = [t.name for t in law_terms].index(v)
     skeleton = split(lambda m, c, k: weak.unexplained(columns_of, m, c, k, linear_column), linear)
     zhat = spectra.force(skeleton.m, skeleton.c, skeleton.k)
-    law = screen(weak.stats(weak.filter(columns_of(zhat)), weak.derivative(zhat)))
-    forces = evaluate(force_terms, library.variables)({**samples, z: zhat}) if force_terms else np.zeros((spectra.N, 0))
+    law = screen(weak.stats(weak.filter(columns_of(zhat)), weak.derivative(zhat)), template=fitting.template)
+    forces = (
+        evaluate(force_terms, library.variables, fitting.chunk_size, fitting.jit)({**samples, z: zhat})
+        if force_terms
+        else np.zeros((spectra.N, 0))
+    )
     memory = screen(
         weak.stats(weak.filter(np.column_stack([spectra.a, spectra.v, spectra.y, forces])), weak.filter(spectra.u)),
         free=(0, 1, 2),
+        template=fitting.template,
     )
     clock("split and screen")
     return Screened(spectra, linear, skeleton, law_terms, law, force_terms, memory)

@@ -54,10 +54,11 @@ def homogeneous_terms(terms, allowed: set[str], exclude=()) -> list[Term]:
     return out
 
 
-def evaluate(terms, variables):
+def evaluate(terms, variables, chunk_size: int = 4096, jit="auto"):
     """A function of a dict ``{variable name: samples}`` returning every term at every sample,
-    shape ``(n_samples, n_terms)``, through the library's compiled :class:`~symsbl.Evaluator`."""
-    evaluator = Evaluator(Library(list(terms), list(variables)))
+    shape ``(n_samples, n_terms)``, through the library's compiled :class:`~symsbl.Evaluator` (``chunk_size``
+    and ``jit`` as its own)."""
+    evaluator = Evaluator(Library(list(terms), list(variables)), chunk_size=chunk_size, jit=jit)
 
     def values_of(values: dict) -> np.ndarray:
         n = len(next(iter(values.values())))
@@ -117,6 +118,8 @@ class WeakForm:
         )
 
 
-def screen(stats: GramStats, free=()) -> RVM:
-    """The relevance vector machine (extended-BIC penalty) on weak-form statistics."""
-    return RVM(free=tuple(free)).fit_stats(stats, 0)
+def screen(stats: GramStats, free=(), template: RVM | None = None) -> RVM:
+    """The relevance vector machine (extended-BIC penalty, or the ``template``'s options) on weak-form
+    statistics."""
+    params = template.get_params() if template is not None else {}
+    return RVM(**dict(params, free=tuple(free))).fit_stats(stats, 0)

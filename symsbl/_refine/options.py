@@ -6,12 +6,14 @@ import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
+
 from .._base.checks import Constraint, check_params
 from .._base.errors import ParameterError, expected
 from .noise import MAX_ORDER
 from .problem import INTERPOLATIONS
 
-__all__ = ["RefineOptions", "MAX_SAMPLES", "as_options"]
+__all__ = ["RefineOptions", "MAX_SAMPLES", "as_options", "requested"]
 
 #: Samples refined on at most (2^18: 8 s at 32768 Hz); longer data contribute evenly spaced windows.
 MAX_SAMPLES = 2**18
@@ -102,3 +104,25 @@ def as_options(value, name: str = "refine_options") -> RefineOptions:
         if not unknown:
             return RefineOptions(**value).check()
     raise ParameterError(expected(name, f"a RefineOptions or a dict with keys among {RefineOptions.names()}", value))
+
+
+def requested(refine, refine_options) -> RefineOptions | None:
+    """The refinement's options from an identification's ``refine`` (a bool or a :class:`RefineOptions`) and
+    ``refine_options`` (a :class:`RefineOptions` or a dict of its fields), checked; None: no refinement."""
+    if isinstance(refine, RefineOptions):
+        if refine_options is not None:
+            raise ParameterError(
+                expected(
+                    "refine_options",
+                    "the refinement's options given once",
+                    "both refine=RefineOptions(...) and refine_options",
+                    "pass only one",
+                    raw=True,
+                )
+            )
+        return as_options(refine, "refine")
+    if not isinstance(refine, (bool, np.bool_)):
+        raise ParameterError(expected("refine", "True, False or a RefineOptions", refine))
+    if not refine:
+        return None
+    return as_options(refine_options)

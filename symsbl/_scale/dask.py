@@ -27,16 +27,16 @@ import numpy as np
 
 from .._base.checks import enough_rows, integer
 from .._base.errors import DataError, LibraryError, MissingExtraError, expected
+from .._base.rule import SelectionRule
 from .._data.trajectory import Trajectory, validate
 from .._derivatives.registry import get_differentiator
 from .._model import IdentifiedModel
-from .._refine import MAX_SAMPLES, refine_or_keep
-from .._refine.problem import window_plan
-from .._regression.fit import fit_stats
+from .._refine.options import RefineOptions
 from .._regression.rows import RegressionStats, block_stats, check_variation, library_columns
 from .._regression.rvm import RVM
 from .._symbolic.evaluator import Evaluator
 from .._symbolic.library import Library
+from .fitting import model_from_stats
 from .stream import RESOLVE_SAMPLES
 
 __all__ = ["dask_stats", "identify_dask", "from_delayed"]
@@ -360,17 +360,20 @@ def identify_dask(
     chunk_size: int = 4096,
     jit="auto",
     scheduler=None,
-    equivalence_nats: float = 2.0,
-    refine: bool = True,
-    refine_options: dict | None = None,
+    equivalence_nats: float | None = None,
+    refine: bool | RefineOptions = True,
+    refine_options: RefineOptions | dict | None = None,
+    selection: SelectionRule | None = None,
+    kinematics=None,
 ) -> IdentifiedModel:
     """Identify one sparse ODE per state from records in ``dask.array`` s.
 
     :func:`dask_stats` on the cluster, then :func:`symsbl.fit_stats` locally (the
     fit needs only the ``n_terms x n_terms`` statistics) and, by default, the output-error
-    refinement locally on at most ``refine_options["max_samples"]`` (2^18 by default)
+    refinement locally on at most :attr:`RefineOptions.max_samples <symsbl.RefineOptions>` (2^18 by default)
     samples, as evenly spaced windows fetched from the records (as :func:`symsbl.identify_stream`
-    does). Other parameters as in those functions.
+    does). Other parameters as in those functions and :func:`symsbl.identify` (``refine``, ``refine_options``,
+    ``selection``, ``equivalence_nats``; ``kinematics`` with both members of each pair among ``states``).
 
     Returns
     -------
@@ -403,19 +406,26 @@ def identify_dask(
         jit=jit,
         scheduler=scheduler,
     )
-    model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
-    if not refine:
-        return model
-
     names = (tuple(states), tuple(inputs))
     items = _dask_records(records, 1 + len(names[0]) + len(names[1]), names)
-    options = dict(refine_options or {})
-    plan, note = window_plan(
-        [int(r.shape[0]) for r in items], integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64)
+
+    def windows(plan):
+        ns = len(names[0])
+        out = []
+        for k, a, b in plan:
+            arr = np.asarray(items[k][a:b].compute(scheduler=scheduler), dtype=float)
+            out.append(Trajectory(arr[:, 0], arr[:, 1 : 1 + ns], arr[:, 1 + ns :], names[0], names[1]))
+        return out
+
+    return model_from_stats(
+        problem,
+        [int(r.shape[0]) for r in items],
+        windows,
+        library=library,
+        rvm=rvm,
+        equivalence_nats=equivalence_nats,
+        selection=selection,
+        kinematics=kinematics,
+        refine=refine,
+        refine_options=refine_options,
     )
-    ns = len(names[0])
-    windows = []
-    for k, a, b in plan:
-        arr = np.asarray(items[k][a:b].compute(scheduler=scheduler), dtype=float)
-        windows.append(Trajectory(arr[:, 0], arr[:, 1 : 1 + ns], arr[:, 1 + ns :], names[0], names[1]))
-    return refine_or_keep(model, windows, library=library, options=options, note=note)

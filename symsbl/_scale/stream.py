@@ -42,16 +42,16 @@ import numpy as np
 from .._base.checks import enough_rows, integer
 from .._base.errors import DataError, LibraryError, expected
 from .._base.progress import Progress
+from .._base.rule import SelectionRule
 from .._data.trajectory import Trajectory
 from .._derivatives.registry import get_differentiator
 from .._model import IdentifiedModel
-from .._refine import MAX_SAMPLES, refine_or_keep
-from .._refine.problem import window_plan
-from .._regression.fit import fit_stats
+from .._refine.options import RefineOptions
 from .._regression.rows import RegressionStats, block_stats, check_variation, library_columns
 from .._regression.rvm import RVM
 from .._symbolic.evaluator import Evaluator
 from .._symbolic.library import Library
+from .fitting import model_from_stats
 from .records import BLOCK_SAMPLES, RecordReader, as_records, blocks, read_windows
 
 __all__ = ["stream_stats", "identify_stream", "RESOLVE_SAMPLES"]
@@ -260,19 +260,22 @@ def identify_stream(
     block_samples: int = BLOCK_SAMPLES,
     jit="auto",
     n_jobs: int = 1,
-    equivalence_nats: float = 2.0,
-    refine: bool = True,
-    refine_options: dict | None = None,
+    equivalence_nats: float | None = None,
+    refine: bool | RefineOptions = True,
+    refine_options: RefineOptions | dict | None = None,
+    selection: SelectionRule | None = None,
+    kinematics=None,
 ) -> IdentifiedModel:
     """Identify one sparse ODE per state from records read block by block.
 
     :func:`stream_stats` followed by :func:`symsbl.fit_stats` and, by default, the output-error
-    refinement (:func:`symsbl.refine`) on at most ``refine_options["max_samples"]``
+    refinement (:func:`symsbl.refine`) on at most :attr:`RefineOptions.max_samples <symsbl.RefineOptions>`
     (2^18 by default) samples: whole records when they fit, else evenly
     spaced windows read again from the records. Peak memory is set by ``block_samples``,
     ``chunk_size``, the number of terms and that sample budget, not by the length of the records.
-    The other parameters are those of the functions named; ``refine=False`` stops at the
-    equation-error model.
+    The other parameters are those of the functions named and of :func:`symsbl.identify` (``refine``,
+    ``refine_options``, ``selection``, ``equivalence_nats``; ``refine=False`` stops at the equation-error
+    model); ``kinematics`` declares position-velocity pairs whose members are both columns.
 
     Returns
     -------
@@ -300,10 +303,15 @@ def identify_stream(
         jit=jit,
         n_jobs=n_jobs,
     )
-    model = fit_stats(problem, rvm=rvm, equivalence_nats=equivalence_nats)
-    if not refine:
-        return model
-
-    options = dict(refine_options or {})
-    plan, note = window_plan(counts, integer("max_samples", options.get("max_samples", MAX_SAMPLES), low=64))
-    return refine_or_keep(model, read_windows(records, plan), library=library, options=options, note=note)
+    return model_from_stats(
+        problem,
+        counts,
+        lambda plan: read_windows(records, plan),
+        library=library,
+        rvm=rvm,
+        equivalence_nats=equivalence_nats,
+        selection=selection,
+        kinematics=kinematics,
+        refine=refine,
+        refine_options=refine_options,
+    )
