@@ -339,17 +339,12 @@ def _diagnosis(model) -> list[str]:
         lines.append("noise model: " + ", ".join(f"{k} {m}" for k, m in coloured.items()))
     for t in refine.get("residual", []):
         if not (t["white"] and t["independent"] and t["open_loop"]):
-            lines.append(
-                f"residual test of {t['channel']}: "
-                + ("" if t["white"] else f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g}) ")
-                + (
-                    "over a white noise between periods (the model's error, not a disturbance) "
-                    if not t["white"] and (t.get("noise_p") or 0.0) >= LEVEL
-                    else ""
-                )
-                + " ".join(f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1)
-                + " ".join(f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1)
-            )
+            found = [] if t["white"] else [f"innovations correlated (Ljung-Box p = {t['whiteness_p']:.2g})"]
+            if not t["white"] and (t.get("noise_p") or 0.0) >= LEVEL:
+                found[-1] += " over a white noise between periods (the model's error, not a disturbance)"
+            found += [f"depends on {k}" for k, r in t["input_ratio"].items() if r > 1]
+            found += [f"feedback to {k}" for k, r in t["feedback_ratio"].items() if r > 1]
+            lines.append(f"residual test of {t['channel']}: " + "; ".join(found))
     for reason in model.metadata.get("estimator", {}).get("doubts", []):
         lines.append(f"output error doubted: {reason}")
     if refine.get("short_segments"):

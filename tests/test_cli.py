@@ -260,3 +260,25 @@ def test_demo_quick(capsys, tmp_path):
     written = sorted(p.name for p in tmp_path.glob("*.png"))
     assert written == ["bouc_wen_n_2.png", "coulomb_friction.png", "duffing.png", "linear.png", "quadratic_damping.png"]
     assert all((tmp_path / name).stat().st_size > 10_000 for name in written)
+
+
+def test_residual_test_findings_are_listed_apart():
+    """Each failed residual test's findings in one line, separated: correlated innovations, an input the
+    residual depends on, an input fed back from past residuals."""
+    from types import SimpleNamespace
+
+    from symsbl._cli import _diagnosis
+
+    test = {
+        "channel": "v",
+        "white": False,
+        "independent": False,
+        "open_loop": False,
+        "whiteness_p": 0.0,
+        "input_ratio": {"tau": 3.0, "u": 0.5},
+        "feedback_ratio": {"tau": 2.0},
+    }
+    model = SimpleNamespace(metadata={"refine": {"noise": {}, "residual": [test]}}, path=())
+    assert _diagnosis(model) == [
+        "residual test of v: innovations correlated (Ljung-Box p = 0); depends on tau; feedback to tau"
+    ]

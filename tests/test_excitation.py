@@ -138,6 +138,24 @@ def test_noise_on_a_measured_input_is_flagged_by_its_level_not_by_the_excitation
         assert noise_std(y, L) / y.std() == pytest.approx(0.005, rel=0.15)
 
 
+def test_an_output_whose_noise_the_record_does_not_resolve_is_no_yardstick():
+    """The stand-in with 0.5 % on the force is flagged against the outputs' noise; with the outputs low-passed to
+    the excitation's band (their noise gone, as a filtered encoder's) there is nothing to compare it with, and
+    no doubt is raised, where their unresolved level (1e-9 here, rounding) made any input noisy."""
+    record = _saturating_record(0.005)
+    L = period(record.inputs)
+    clean = [np.tile(record.column(n)[:L], record.n_samples // L) for n in ("x", "v")]  # one period, repeated
+    spectra = [np.fft.rfft(c) for c in clean]
+    band = np.fft.rfftfreq(clean[0].size) <= 0.35 * 1.02
+    filtered = np.column_stack([np.fft.irfft(np.where(band, f, 0.0), clean[0].size) for f in spectra])
+    filtered += 1e-9 * filtered.std(axis=0) * np.random.default_rng(1).standard_normal(filtered.shape)  # rounding
+    smooth = symsbl.Trajectory(record.t, filtered, record.inputs, ("x", "v"), ("F",))
+    assert noisy_inputs([record], ("x", "v"), ("F",))
+    levels = [noise_std(smooth.column(n), L) / smooth.column(n).std() for n in ("x", "v")]
+    assert 0 < min(levels) and max(levels) < 1e-6
+    assert noisy_inputs([smooth], ("x", "v"), ("F",)) == ()
+
+
 def test_the_period_of_an_oversampled_multisine_is_its_own_not_a_neighbour():
     """Lines 2-30 Hz at 1 kHz: the autocorrelation at 999 samples is within 1 % of its peak at 1000."""
     t = np.arange(5000) / 1000.0
