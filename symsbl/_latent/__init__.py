@@ -4,7 +4,7 @@ A state of the model that is neither a column of the data nor the velocity of a 
 position-velocity pair is latent. Its equation cannot be regressed, so :func:`identify_latent`
 reconstructs it, screens its law and settles the structure by output error on what is measured:
 
-1. :mod:`.periodic`: the record is cut into the whole periods of its input and averaged; the
+1. :mod:`.periodic`: each record is cut into the whole periods of its input and averaged; the
    scatter of the periods gives the noise of every spectral bin (a record whose input does not
    repeat is taken whole, its ends left out of the regressions);
 2. :mod:`.skeleton` (stage 1): the linear skeleton ``m y'' + c y' + k y = u`` by frequency-domain
@@ -17,7 +17,10 @@ reconstructs it, screens its law and settles the structure by output error on wh
    error on the measured position only, with term selection on the output-error evidence and the
    latent initial state as an unknown; the branch of highest Laplace evidence wins, and the hidden
    branch only by more than the per-term penalty and with a law that is not ``z' = y' g(z)`` (which
-   integrates to a memoryless spring ``z = G(y)``).
+   integrates to a memoryless spring ``z = G(y)``);
+5. as asked: the winner refined once more with the caller's doubts and model choice (:class:`Fitting`).
+
+Several records are screened on the one whose position varies most and refined jointly.
 
 Convention: the latent state enters the velocity equation with the coefficient ``-1/m`` of the
 split, held fixed: it is a force in the units of the input (to the precision of that ``m``).
