@@ -245,3 +245,18 @@ def test_the_command_identifies_with_a_library_term_the_c_library_lacks(tmp_path
     # the model file it wrote reads back: erfinv is in the model file's grammar
     model = symsbl.IdentifiedModel.load(tmp_path / "m.json")
     assert "erfinv(tanh(x1))" in model.equation("x2").names
+
+
+def test_a_caller_that_calls_a_function_often_may_compile_a_larger_source(fresh):
+    """Under jit="auto" a source beyond the bound runs on the virtual machine (one evaluation does not pay for
+    gcc), and a caller that will call it thousands of times (a fit's passes) raises the bound."""
+    fn = mapped(5)
+    reference = evaluate(fn)
+    small, is_compiled = jit_module.jit_wrap(fn, "f_chunk", "auto", SimulationError, max_source=100)
+    assert not is_compiled and small is fn and not list(fresh.iterdir())
+    large, is_compiled = jit_module.jit_wrap(mapped(5), "f_chunk", "auto", SimulationError, max_source=10**6)
+    assert is_compiled and len(list(fresh.iterdir())) == 1
+    np.testing.assert_allclose(evaluate(large), reference, rtol=1e-14)
+    from symsbl._refine.sensitivity import FIT_SOURCE
+
+    assert jit_module.MAX_AUTO_SOURCE < FIT_SOURCE  # the refinement's passes compile what a one-off would not

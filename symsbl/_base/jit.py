@@ -139,7 +139,14 @@ def jit_lookup(key) -> ca.Function | None:
 
 
 def jit_wrap(
-    fn: ca.Function, name: str, jit, error: type[SymsblError], *, only_cached: bool = False, key=None
+    fn: ca.Function,
+    name: str,
+    jit,
+    error: type[SymsblError],
+    *,
+    only_cached: bool = False,
+    key=None,
+    max_source: int = MAX_AUTO_SOURCE,
 ) -> tuple[ca.Function, bool]:
     """``fn`` compiled as one C function (an MX wrapper compiled with gcc), or ``fn`` itself.
 
@@ -163,6 +170,9 @@ def jit_wrap(
     key : hashable, optional
         The in-memory cache key (default: a hash of ``fn``'s serialised graph and ``name``); a
         caller that knows a cheaper one (the small step the function was built from) passes it.
+    max_source : int
+        Largest C source compiled under ``jit="auto"`` (bytes; default :data:`MAX_AUTO_SOURCE`): a caller
+        that will call the function many times (a fit's passes) may allow more.
 
     Returns
     -------
@@ -194,7 +204,7 @@ def jit_wrap(
     wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
     build = not only_cached or key in _SEEN  # compiled from the second request on: a structure used again
     try:
-        compiled = _compile(wrapper, cc, build, MAX_AUTO_SOURCE if jit == "auto" else None)
+        compiled = _compile(wrapper, cc, build, max_source if jit == "auto" else None)
     except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
         if jit is True:
             text = err.stderr.decode(errors="replace") if isinstance(err, subprocess.CalledProcessError) else str(err)

@@ -21,7 +21,7 @@ from .._model import IdentifiedModel
 from .noise import innovations
 from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
 from .rows import design_rows, state_guess
-from .sensitivity import Passes
+from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
 from .solver import PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
 from .structure import free_positions, with_terms
@@ -77,7 +77,7 @@ class Engine:
             substeps = choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate())
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
-        self.passes = Passes(self.param, layout, jit=settings.jit)
+        self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)
         self.length0 = self._first_length()
         #: The noise model of the fits: "white", an autoregressive order, or "auto" until a fit has chosen one
         #: (every later fit of this engine keeps that order, so that their evidences compare).

@@ -24,7 +24,7 @@ import numpy as np
 
 from .._base.blas import one_blas_thread
 from .._base.errors import SimulationError
-from .._base.jit import jit_lookup, jit_wrap
+from .._base.jit import MAX_AUTO_SOURCE, jit_lookup, jit_wrap
 from .problem import Parameterisation, Records
 
 __all__ = ["Passes", "Segments", "Blocks"]
@@ -136,9 +136,11 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
     )
 
 
-def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Function:
+def _chunk(
+    step: ca.Function, jit, n_samples: int, chunk: int = CHUNK, max_source: int = MAX_AUTO_SOURCE
+) -> ca.Function:
     """``chunk`` steps of ``step`` (its first input and output carried, the other outputs returned at every
-    step), ``theta`` (input 3) given once."""
+    step), ``theta`` (input 3) given once; compiled under ``jit="auto"`` up to ``max_source`` bytes of C."""
     key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", chunk)
     cached = jit_lookup(key) if jit is not False else _VM_CHUNKS.get(key)
     if cached is not None:
@@ -160,9 +162,15 @@ def _chunk(step: ca.Function, jit, n_samples: int, chunk: int = CHUNK) -> ca.Fun
             _VM_CHUNKS.pop(next(iter(_VM_CHUNKS)))
         return wrapper
     lazy = jit == "auto" and n_samples < JIT_MIN_SAMPLES
-    fn, _ = jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy)
+    fn, _ = jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy, max_source=max_source)
     return fn
 
+
+#: Largest C source of a fit's passes compiled under ``jit="auto"`` (bytes). A fit calls them thousands of times:
+#: a 5-degree-of-freedom chain's 640 kB pass compiled in 17 s and its refinement took 52 s of CPU, against 227 s
+#: on CasADi's virtual machine under the general bound (:data:`symsbl._base.jit.MAX_AUTO_SOURCE`). A model
+#: file's structure, fitted once by ``validate``, keeps the general bound.
+FIT_SOURCE = 1_000_000
 
 #: Uncompiled chunk functions of the structures used last, by the key of their step.
 _VM_CHUNKS: dict = {}
@@ -256,13 +264,14 @@ class Passes:
     precisions and the noise model, all given to it; the arrays this object keeps besides the records are
     scratch space the compiled calls read."""
 
-    def __init__(self, param: Parameterisation, records: Records, jit="auto"):
+    def __init__(self, param: Parameterisation, records: Records, jit="auto", max_source: int = MAX_AUTO_SOURCE):
         self.param, self.records = param, records
         step, self.layout = sensitivity_step(param, param.observe(records.outputs), records.n_outputs, records.substeps)
         lay = self.layout
         # divides CHUNK, the padding and the plain simulation's calls
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
-        self._sens = _chunk(step, jit, records.n_total, self.chunk)
+        self._sens = _chunk(step, jit, records.n_total, self.chunk, max_source)
+        self.max_source = max_source
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
         self._state: ca.Function | None = None  # compiled when a plain simulation is asked for
         self.jit = jit
@@ -468,7 +477,8 @@ class Passes:
         theta = np.ascontiguousarray(theta, dtype=float)
         out = np.empty((self.n_pad, nx))
         if self._state is None:
-            self._state = _chunk(state_step(self.param, self.records.substeps), self.jit, self.records.n_total)
+            step = state_step(self.param, self.records.substeps)
+            self._state = _chunk(step, self.jit, self.records.n_total, max_source=self.max_source)
         buf, call = self._state.buffer()
         x0 = np.zeros(nx)
         buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
