@@ -22,7 +22,7 @@ folder, so every compiled function is compiled in the run), one BLAS thread:
   (``symsbl._base.jit._compile``: C code generation, gcc, loading), and the forward sensitivities
   (``symsbl._refine.sensitivity``): building the SX step and its ``mapaccum`` (``sensitivity_step``,
   ``state_step``, ``_chunk``), the pass's calls through ``Function.buffer`` (compiled C, or CasADi's virtual
-  machine when ``jit="auto"`` declines a C source over ``MAX_AUTO_SOURCE``) and the numpy work of
+  machine when ``jit="auto"`` declines a C source over the refinement's bound, ``FIT_SOURCE``) and the numpy work of
   ``Passes.sensitivities`` around them (whitening, the Gauss-Newton blocks); "rest" is everything else
   (the RVM, the solver's linear algebra, the screen, the model choice). Shares are of the CPU of ``identify``;
 - the C sources generated (their sizes) and which of the refinement's passes ran compiled;
@@ -475,7 +475,9 @@ def compiled(auto: dict, forced: dict) -> None:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="2,3,5", help="comma-separated N")
-    parser.add_argument("--big", action="store_true", help=f"also N = {MAX_N} (hours, from the growth up to N = 5)")
+    parser.add_argument(
+        "--big", action="store_true", help=f"also N = {MAX_N} (long: its passes' C source exceeds the 1 MB bound)"
+    )
     parser.add_argument(
         "--no-compiled", action="store_true", help="skip the largest N with the refinement's passes compiled"
     )
