@@ -248,6 +248,36 @@ def test_branch_options_are_the_callers_with_the_latent_paths_defaults_resolved(
     assert Fitting(rvm=symsbl.RVM(tol=1e-5)).template.get_params()["tol"] == 1e-5
 
 
+def test_the_winner_is_refined_again_only_where_the_caller_asked_otherwise(monkeypatch):
+    """The branches report their doubts and choose by evidence; the winner is refined once more when the caller's
+    rule still chooses a structure, or when it was doubted and the caller adapts to doubts (with or without
+    term selection), and then with the caller's doubts."""
+    from types import SimpleNamespace
+
+    import symsbl._latent as latent
+
+    calls = []
+    monkeypatch.setattr(latent, "refine", lambda fit, data, **kw: calls.append(kw["options"]) or fit)
+    clean = SimpleNamespace(metadata={"refine": {"doubts": []}})
+    doubted = SimpleNamespace(metadata={"refine": {"doubts": ["the innovations of x1 are not white"]}})
+    branch = symsbl.RefineOptions(doubts="report")
+    fixed = symsbl.RefineOptions(select=False, doubts="report")
+    evidence = symsbl.SelectionRule(model_choice="evidence")
+
+    def asked(fit, options, fitting):
+        calls.clear()
+        latent._as_asked(fit, None, None, options, fitting, lambda stage: None)
+        return [o.doubts for o in calls]
+
+    assert asked(clean, branch, latent.Fitting(rule=evidence)) == []
+    assert asked(clean, branch, latent.Fitting()) == ["adapt"]  # the validated choice
+    assert asked(doubted, branch, latent.Fitting(rule=evidence)) == ["adapt"]
+    assert asked(doubted, fixed, latent.Fitting(options=symsbl.RefineOptions(select=False))) == ["adapt"]
+    assert asked(clean, fixed, latent.Fitting(options=symsbl.RefineOptions(select=False))) == []
+    reported = symsbl.RefineOptions(doubts="report")
+    assert asked(doubted, branch, latent.Fitting(options=reported, rule=evidence)) == []
+
+
 @pytest.mark.slow
 def test_every_option_acts_on_the_latent_path():
     """The refinement's options reach the branches, the rule's model choice the winner (an extra refinement

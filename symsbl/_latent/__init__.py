@@ -205,7 +205,8 @@ def _as_asked(fit: IdentifiedModel, data, library, options: RefineOptions, fitti
     """The winning branch refined once more with the caller's doubts and model choice, where they differ from the
     branches' (which report their doubts and choose by evidence)."""
     doubted = bool(fit.metadata["refine"].get("doubts")) and fitting.options.doubts != "report"
-    if not options.select or (fitting.rule.model_choice == "evidence" and not doubted):
+    chooses = options.select and fitting.rule.model_choice != "evidence"  # a structure the rule still chooses
+    if not (doubted or chooses):
         return fit
     asked = dataclasses.replace(options, doubts=fitting.options.doubts)
     try:
