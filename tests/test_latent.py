@@ -239,7 +239,12 @@ def test_branch_options_are_the_callers_with_the_latent_paths_defaults_resolved(
     from symsbl._latent import Fitting
 
     default = Fitting().branch_options(periodic=True, substeps=4)
-    assert (default.interpolation, default.substeps, default.doubts) == ("periodic", 4, "report")
+    assert (default.interpolation, default.substeps, default.min_substeps, default.doubts) == (
+        "periodic",
+        "auto",
+        4,
+        "report",
+    )
     assert Fitting().branch_options(periodic=False, substeps=4).interpolation == "cubic"
     asked = Fitting(options=symsbl.RefineOptions(interpolation="hold", substeps=7, noise="white", max_samples=999))
     given = asked.branch_options(periodic=True, substeps=4)

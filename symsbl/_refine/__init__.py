@@ -162,6 +162,7 @@ def refine(
         jit=opts.jit,
         noise=opts.noise,
         doubts=opts.doubts,
+        min_substeps=opts.min_substeps,
     )
     select = opts.select
     rebased = None

@@ -42,6 +42,7 @@ class Settings:
     smooth: bool = True
     jit: object = "auto"
     growth: int = 8
+    min_substeps: int = 1
     noise: object = "white"
     doubts: str = "adapt"
 
@@ -74,7 +75,10 @@ class Engine:
         self.param = Parameterisation.of(fitted)
         substeps = settings.substeps
         if substeps == "auto":
-            substeps = choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate())
+            substeps = max(
+                choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate()),
+                settings.min_substeps,
+            )
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)

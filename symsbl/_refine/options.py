@@ -32,7 +32,11 @@ class RefineOptions:
         controller's stepped output, ``"periodic"`` for records of whole periods).
     substeps : int or "auto"
         RK4 steps per sample; ``"auto"`` takes enough for the simulation error to stay small over the system's
-        memory.
+        memory, at least ``min_substeps``.
+    min_substeps : int
+        The fewest RK4 steps per sample ``"auto"`` takes (default 1): a caller that knows the inputs drive the
+        response faster than the model's own modes say sets it (the hidden-state search does, from the
+        input's band).
     smooth : bool
         Fit ``sign(a)`` as a narrow ``tanh`` where a term jumps (the model returned keeps ``sign``).
     max_samples : int
@@ -69,6 +73,7 @@ class RefineOptions:
     jit: object = "auto"
     noise: object = "auto"
     doubts: str = "adapt"
+    min_substeps: int = 1
 
     #: Each option's accepted values (checked by :meth:`check`, where the options enter a computation).
     _constraints: ClassVar[dict] = {
@@ -80,6 +85,7 @@ class RefineOptions:
         "jit": Constraint.choice(("auto", True, False)),
         "noise": Constraint.integer(low=0, high=MAX_ORDER, options=("auto", "white")),
         "doubts": Constraint.choice(("adapt", "report")),
+        "min_substeps": Constraint.integer(low=1),
     }
 
     def check(self) -> RefineOptions:
