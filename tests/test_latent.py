@@ -238,16 +238,16 @@ def test_options_the_latent_path_cannot_honour_are_refused_in_one_line():
 def test_branch_options_are_the_callers_with_the_latent_paths_defaults_resolved():
     from symsbl._latent import Fitting
 
-    default = Fitting().branch_options(periodic=True, substeps=4)
+    default = Fitting().branch_options(periodic=True, band_substeps=4)
     assert (default.interpolation, default.substeps, default.min_substeps, default.doubts) == (
         "periodic",
         "auto",
         4,
         "report",
     )
-    assert Fitting().branch_options(periodic=False, substeps=4).interpolation == "cubic"
+    assert Fitting().branch_options(periodic=False, band_substeps=4).interpolation == "cubic"
     asked = Fitting(options=symsbl.RefineOptions(interpolation="hold", substeps=7, noise="white", max_samples=999))
-    given = asked.branch_options(periodic=True, substeps=4)
+    given = asked.branch_options(periodic=True, band_substeps=4)
     assert (given.interpolation, given.substeps, given.noise, given.max_samples) == ("hold", 7, "white", 999)
     assert Fitting(rule=symsbl.SelectionRule(penalty=12.5)).template.prune_nats == 12.5
     assert Fitting(rvm=symsbl.RVM(tol=1e-5)).template.get_params()["tol"] == 1e-5

@@ -123,16 +123,13 @@ class Fitting:
         """The screens' relevance vector machine: the template's options with the rule's penalty."""
         return RVM(**dict((self.rvm or RVM()).get_params(), prune_nats=self.rule.penalty))
 
-    def branch_options(self, periodic: bool, substeps: int) -> RefineOptions:
-        """The options every branch is refined with."""
+    def branch_options(self, periodic: bool, band_substeps: int) -> RefineOptions:
+        """The options every branch is refined with; ``band_substeps``: the RK4 steps per sample the input's band
+        needs, the floor of ``substeps="auto"``."""
         given = self.options
         interpolation = "periodic" if periodic and given.interpolation == "cubic" else given.interpolation
-        return dataclasses.replace(
-            given,
-            interpolation=interpolation,
-            min_substeps=max(given.min_substeps, substeps) if given.substeps == "auto" else given.min_substeps,
-            doubts="report",
-        )
+        floor = max(given.min_substeps, band_substeps) if given.substeps == "auto" else given.min_substeps
+        return dataclasses.replace(given, interpolation=interpolation, min_substeps=floor, doubts="report")
 
 
 def identify_latent(
@@ -174,8 +171,8 @@ def identify_latent(
     symbols = {s.name(): s for s in library.variables}
     builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
     starts = builder.starts(stages)
-    substeps = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
-    options = fitting.branch_options(periodic, substeps)
+    band = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
+    options = fitting.branch_options(periodic, band)
     data = [r.slice(c.start) for r, c in zip(trajectories, cuts)]
     candidates = stages.candidates(library.variables)
     rule = dataclasses.replace(fitting.rule, model_choice="evidence")
