@@ -102,6 +102,26 @@ def test_json_round_trip(duffing, tmp_path):
     np.testing.assert_array_equal(back.equations[1].covariance, model.equations[1].covariance)
 
 
+def test_a_covariance_symmetric_to_rounding_loads_and_an_asymmetric_one_does_not(duffing, tmp_path):
+    # a refinement's covariance can hold entries near 1e-21 beside 1e-4 whose mirror differs in the
+    # sixth digit (seen on a 24-state modal model): rounding, not a different matrix
+    _, _, model = duffing
+    doc = model.to_json()
+    cov = np.array(doc["equations"][1]["covariance"])
+    n = cov.shape[0]
+    tiny = cov.copy()
+    tiny[0, n - 1], tiny[n - 1, 0] = 4.0e-21, 4.00002e-21
+    doc["equations"][1]["covariance"] = tiny.tolist()
+    (tmp_path / "tiny.json").write_text(json.dumps(doc))
+    assert IdentifiedModel.load(tmp_path / "tiny.json").equations[1].covariance[0, n - 1] == 4.0e-21
+    skewed = cov.copy()
+    skewed[0, n - 1] = cov[0, n - 1] + 1e-3 * np.abs(cov).max()
+    doc["equations"][1]["covariance"] = skewed.tolist()
+    (tmp_path / "skewed.json").write_text(json.dumps(doc))
+    with pytest.raises(symsbl.DataError, match="symmetric"):
+        IdentifiedModel.load(tmp_path / "skewed.json")
+
+
 def test_load_errors(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")

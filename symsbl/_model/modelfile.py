@@ -310,7 +310,7 @@ def _covariance(raw: dict, where: str, terms) -> np.ndarray:
     if arr.shape != (n, n) or not np.all(np.isfinite(arr)):
         got = f"shape {arr.shape}" if arr.shape != (n, n) else "non-finite entries"
         raise DataError(expected(f"{where}.covariance", f"a finite {n} x {n} array (one row per term)", got, raw=True))
-    if not np.allclose(arr, arr.T, rtol=1e-6, atol=0) or np.any(np.diag(arr) < 0):
+    if not _symmetric(arr) or np.any(np.diag(arr) < 0):
         raise DataError(
             expected(
                 f"{where}.covariance", "a symmetric matrix with a non-negative diagonal", "one that is not", raw=True
@@ -420,6 +420,11 @@ def _outputs(doc) -> tuple:
     return tuple(output_from_json(o, f"{_WHERE}.outputs[{k}]") for k, o in enumerate(raw))
 
 
+def _symmetric(arr: np.ndarray) -> bool:
+    """Symmetric to rounding: entries equal to 1e-6 of themselves or of the matrix's largest entry."""
+    return bool(np.allclose(arr, arr.T, rtol=1e-6, atol=1e-6 * float(np.abs(arr).max(initial=0.0))))
+
+
 def _joint_covariance(doc, n: int) -> np.ndarray | None:
     if "covariance" not in doc:
         return None
@@ -429,7 +434,7 @@ def _joint_covariance(doc, n: int) -> np.ndarray | None:
         raise DataError(
             expected(f"{_WHERE}.covariance", f"a {n} x {n} array of numbers", "non-numeric entries", raw=True)
         ) from None
-    if arr.shape != (n, n) or not np.all(np.isfinite(arr)) or not np.allclose(arr, arr.T, rtol=1e-6, atol=0):
+    if arr.shape != (n, n) or not np.all(np.isfinite(arr)) or not _symmetric(arr):
         raise DataError(
             expected(
                 f"{_WHERE}.covariance",
