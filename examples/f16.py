@@ -22,7 +22,7 @@ Usage::
 
     python examples/f16.py                      # score the saved models on the estimation levels
     python examples/f16.py --validate FILE.csv  # score the saved model on any benchmark-layout record
-    python examples/f16.py --identify           # identify again (about an hour of CPU) and save
+    python examples/f16.py --identify           # identify again (about 20 minutes of CPU) and save
 
 Scoring: free-run simulation from the measured force alone, all nine periods, the error RMS over
 periods 2-9 per acceleration, in m/s^2 and in % of that acceleration's RMS.
