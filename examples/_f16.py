@@ -6,8 +6,6 @@ See ``f16.py`` for the model and its argument; this module is what that script r
 from __future__ import annotations
 
 import csv
-import dataclasses
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,10 +24,6 @@ BAND = (2.0, 15.0)  # Hz, the excited band
 N_MODES = 12
 #: Lightest damping ratio a mode may take: an undamped pole of a fit rings for ever in free run.
 MIN_DAMPING = 2e-3
-#: Periods (0-based) refined on, the first in steady state; the others of each estimation record are held out.
-TRAIN_PERIODS = (1,)
-#: Modes the interface's force enters: those nearest the line the force level changes most.
-JOINT_MODES = 3
 ACCELERATIONS = ("a1", "a2", "a3")
 
 
@@ -69,17 +63,28 @@ def read_record(path: Path) -> Record:
     return Record(column["Force"], acc, float(column["Fs"][0]))
 
 
+def excited(fs: float) -> np.ndarray:
+    """The excited lines of a period at the rate ``fs`` (a mask of its rfft)."""
+    f = np.fft.rfftfreq(PERIOD, 1 / fs)
+    return (f >= BAND[0] - 1e-9) & (f <= BAND[1] + 1e-9)
+
+
+def _spectrum(x: np.ndarray) -> np.ndarray:
+    """The spectrum of one period (FFT units), averaged over periods 2-9 (the last axis holds time)."""
+    periods = x.shape[-1] // PERIOD
+    return np.fft.rfft(x[..., : periods * PERIOD].reshape(*x.shape[:-1], periods, PERIOD)[..., 1:, :], axis=-1).mean(-2)
+
+
+def force_lines(rec: Record) -> np.ndarray:
+    """The force's spectrum on the excited lines, periods 2-9 averaged."""
+    return _spectrum(rec.force)[excited(rec.fs)]
+
+
 def frf(records: list[Record]):
     """The mean frequency response acceleration/force on the excited lines, periods 2-9 of each record."""
-    responses = []
-    for rec in records:
-        periods = rec.force.size // PERIOD
-        F = np.fft.rfft(rec.force[: periods * PERIOD].reshape(periods, PERIOD)[1:], axis=-1).mean(0)
-        A = np.fft.rfft(rec.acc[:, : periods * PERIOD].reshape(3, periods, PERIOD)[:, 1:], axis=-1).mean(1)
-        responses.append(A / F)
-    f = np.fft.rfftfreq(PERIOD, 1 / records[0].fs)
-    lines = (f >= BAND[0] - 1e-9) & (f <= BAND[1] + 1e-9)
-    return f[lines], np.mean(responses, axis=0)[:, lines]
+    responses = [_spectrum(rec.acc) / _spectrum(rec.force) for rec in records]
+    lines = excited(records[0].fs)
+    return np.fft.rfftfreq(PERIOD, 1 / records[0].fs)[lines], np.mean(responses, axis=0)[:, lines]
 
 
 def _design(f, w, zeta):
@@ -122,11 +127,11 @@ def _term(expr, coef, fixed=False):
     return TermEstimate(expr, float(coef), 0.0, fixed=bool(fixed))
 
 
-def modal_model(w, zeta, C, extra=None, free=None) -> IdentifiedModel:
-    """The modal model of a fit, with ``extra`` terms (equation name -> expressions) at zero; the
-    coefficients of the modes ``free`` (default: all) are estimated, the others' held at the fit's."""
+def modal_model(w, zeta, C, extra=None) -> IdentifiedModel:
+    """The modal model of natural frequencies ``w``, damping ratios ``zeta`` and output coefficients ``C``,
+    with ``extra`` terms: a function of the modes' q, p and the force giving, per equation name, its
+    (expression, coefficient) pairs."""
     n = w.size
-    held = np.zeros(n, bool) if free is None else ~np.isin(np.arange(n), free)
     q = [ca.SX.sym(f"q{i + 1}") for i in range(n)]
     p = [ca.SX.sym(f"p{i + 1}") for i in range(n)]
     force = ca.SX.sym("F")
@@ -135,16 +140,13 @@ def modal_model(w, zeta, C, extra=None, free=None) -> IdentifiedModel:
     for i in range(n):
         states += [q[i], p[i]]
         equations.append(Equation(f"q{i + 1}", (_term(p[i], 1.0),), np.zeros((1, 1)), 0.0, 0.0, fixed=True))
-        terms = [_term(force, 1.0, fixed=True), _term(q[i], -(w[i] ** 2), held[i])]
-        terms += [_term(p[i], -2 * zeta[i] * w[i], held[i])]
-        terms += [_term(e, 0.0) for e in extra.get(f"p{i + 1}", ())]
-        equations.append(Equation(f"p{i + 1}", tuple(terms), np.eye(len(terms)), 1.0, 0.0))
+        terms = [_term(force, 1.0, fixed=True), _term(q[i], -(w[i] ** 2)), _term(p[i], -2 * zeta[i] * w[i])]
+        terms += [_term(e, c) for e, c in extra.get(f"p{i + 1}", ())]
+        equations.append(Equation(f"p{i + 1}", tuple(terms), np.zeros((len(terms),) * 2), 0.0, 0.0))
     for j, name in enumerate(ACCELERATIONS):
-        terms = [_term(q[i], C[j, i], held[i]) for i in range(n)] + [
-            _term(p[i], C[j, n + i], held[i]) for i in range(n)
-        ]
-        terms += [_term(force, C[j, -1])] + [_term(e, 0.0) for e in extra.get(name, ())]
-        equations.append(Equation(name, tuple(terms), np.eye(len(terms)), 1.0, 0.0, algebraic=True))
+        terms = [_term(q[i], C[j, i]) for i in range(n)] + [_term(p[i], C[j, n + i]) for i in range(n)]
+        terms += [_term(force, C[j, -1])] + [_term(e, c) for e, c in extra.get(name, ())]
+        equations.append(Equation(name, tuple(terms), np.zeros((len(terms),) * 2), 0.0, 0.0, algebraic=True))
     return IdentifiedModel(
         tuple(states),
         (force,),
@@ -156,85 +158,13 @@ def modal_model(w, zeta, C, extra=None, free=None) -> IdentifiedModel:
     )
 
 
-def relative_motion(w, zeta, C):
-    """Per mode, the coefficients of the interface's relative displacement ``x2 - x3`` on (q, p).
-
-    An acceleration ``(c_q + c_p s) / (s^2 + b s + k)`` per unit force is, divided by ``s^2``, a
-    displacement ``A / s^2 + B / s + (g + h s) / (s^2 + b s + k)``; the band's part is ``g q + h p``.
-    """
-    n = w.size
-    k, b = w**2, 2 * zeta * w
-    cq, cp = C[:, :n], C[:, n : 2 * n]
-    A = cq / k
-    B = (cp - A * b) / k
-    g, h = -A - B * b, -B
-    # modes outside the band stand for the response beyond it (rigid-body drift, mass line), not the interface
-    inside = (w >= 2 * np.pi * BAND[0]) & (w <= 2 * np.pi * BAND[1])
-    return np.where(inside, g[1] - g[2], 0.0), np.where(inside, h[1] - h[2], 0.0)
-
-
-def distorted_modes(w, records: list[Record]) -> np.ndarray:
-    """The modes nearest the line whose response changes most between the weakest and strongest record."""
+def distorted_mode(w, records: list[Record]) -> int:
+    """The mode nearest the line whose response changes most between the weakest and strongest record."""
     weakest, strongest = (min(records, key=lambda r: r.force.std()), max(records, key=lambda r: r.force.std()))
     f, low = frf([weakest])
     high = frf([strongest])[1]
     worst = f[np.argmax(np.abs(high - low).sum(0))]
-    return np.argsort(np.abs(w - 2 * np.pi * worst))[:JOINT_MODES]
-
-
-#: The candidate interface forces, by name, in the scaled relative displacement d and rate r.
-LAWS = ("d^3", "d|d|", "r|r|", "d^2 r", "r^3")
-
-
-def interface(w, zeta, C, scale: float, modes) -> dict:
-    """What defines the interface's candidates: the modal fit, the motion's coefficients, its scale, the modes."""
-    g, h = relative_motion(w, zeta, C)
-    lists = dict(w=w, zeta=zeta, g=g, h=h)
-    return {**{k: [float(x) for x in v] for k, v in lists.items()}, "scale": scale, "modes": [int(i) for i in modes]}
-
-
-def interface_laws(q, p, force, spec: dict) -> dict:
-    """The candidate forces (name -> expression) of the interface ``spec`` (see :func:`interface`)."""
-    w, zeta, g, h = (np.array(spec[k]) for k in ("w", "zeta", "g", "h"))
-    d = sum(g[i] * q[i] + h[i] * p[i] for i in range(w.size)) / spec["scale"]
-    rate = sum(g[i] * p[i] + h[i] * (force - w[i] ** 2 * q[i] - 2 * zeta[i] * w[i] * p[i]) for i in range(w.size))
-    r = rate / (spec["scale"] * np.mean(w[spec["modes"]]))
-    return dict(zip(LAWS, (d**3, d * ca.fabs(d), r * ca.fabs(r), d**2 * r, r**3)))
-
-
-def joint_candidates(spec: dict):
-    """The interface's candidates in the equations of its modes and of the accelerations next to it."""
-
-    def extra(q, p, force):
-        laws = tuple(interface_laws(q, p, force, spec).values())
-        return {**{f"p{i + 1}": laws for i in spec["modes"]}, "a2": laws, "a3": laws}
-
-    return extra
-
-
-def joint_law(model: IdentifiedModel) -> str:
-    """The interface terms ``model`` kept, by equation, named as in :data:`LAWS`."""
-    spec = model.metadata["interface"]
-    n = len(model.states) // 2
-    laws = interface_laws(model.states[0::2], model.states[1::2], model.inputs[0], spec)
-    probe = np.random.default_rng(0).normal(size=(2 * n + 1, 4)) * 1e-4
-    symbols = ca.vertcat(*model.states, *model.inputs)
-
-    def values(expr):
-        return np.array(ca.Function("f", [symbols], [expr])(probe)).ravel()
-
-    named = [(name, values(expr)) for name, expr in laws.items()]
-    lines = []
-    for eq in model.equations:
-        kept = []
-        for t in eq.terms:
-            v = values(t.expr)
-            match = [name for name, ref in named if np.allclose(v, ref, rtol=1e-9, atol=0)]
-            if match:
-                kept.append(f"{t.coef:+.4g} ({t.std:.2g}) {match[0]}")
-        if kept:
-            lines.append(f"{eq.written} += " + "  ".join(kept))
-    return "\n".join(lines) or "no interface term kept"
+    return int(np.argmin(np.abs(w - 2 * np.pi * worst)))
 
 
 def _free_run(model: IdentifiedModel, rec: Record) -> symsbl.Trajectory:
@@ -271,45 +201,3 @@ def score_table(model: IdentifiedModel, rec: Record) -> str:
         f"  Acceleration{j + 1}: {e:.4f} m/s^2 ({100 * e / r:.2f} % of its RMS {r:.4f} m/s^2)"
         for j, (e, r) in enumerate(zip(score(model, rec), _rms(rec)))
     )
-
-
-#: Output error as the example asks it: the records are periodic; every doubt is reported, not acted on
-#: (refitting on short segments, each with 24 unknown initial states, costs far more than the periods);
-#: every candidate is fitted, without the evidence's choice among them (the model path refits each
-#: structure it compares: hours at 24 latent states, where one fit took 18 minutes of CPU here).
-OPTIONS = dict(select=False, interpolation="periodic", doubts="report")
-
-
-def identify_and_save(folder: Path, levels, paths) -> None:
-    """Identify the linear and the nonlinear model on the estimation levels, from one start, and save both."""
-    start = time.process_time()
-    records = [read_record(folder / f"F16Data_FullMSine_Level{n}.mat") for n in levels]
-    w, zeta, C = fit_modes(*frf(records[:1]))
-    train = [r.trajectory(TRAIN_PERIODS) for r in records]
-    linear = modal_model(w, zeta, C)
-    g, h = relative_motion(w, zeta, C)
-    scale = _joint_scale(linear, max(records, key=lambda r: r.force.std()), g, h)
-    modes = distorted_modes(w, records)
-    spec = interface(w, zeta, C, scale, modes)
-    start_model = modal_model(w, zeta, C, joint_candidates(spec), free=modes)
-    nonlinear = symsbl.refine(start_model, train, options=symsbl.RefineOptions(**OPTIONS))
-    save_nonlinear(nonlinear, spec, paths["nonlinear"])
-    print(f"nonlinear model: {time.process_time() - start:.0f} s of CPU")
-    linear = modal_model(w, zeta, C, free=modes)
-    linear = symsbl.refine(linear, train, options=symsbl.RefineOptions(**OPTIONS))
-    linear.save(paths["linear"])
-    print(f"both models: {time.process_time() - start:.0f} s of CPU")
-
-
-def save_nonlinear(model: IdentifiedModel, spec: dict, path: Path) -> None:
-    """Save the nonlinear model with its interface's definition, which names its terms (:func:`joint_law`)."""
-    dataclasses.replace(model, metadata=dict(model.metadata, interface=spec)).save(path)
-
-
-def _joint_scale(model, rec: Record, g, h) -> float:
-    """The standard deviation of the relative displacement in the strongest record's free run."""
-    run = _free_run(model, rec)
-    n = g.size
-    q = np.column_stack([run.states[:, run.state_names.index(f"q{i + 1}")] for i in range(n)])
-    p = np.column_stack([run.states[:, run.state_names.index(f"p{i + 1}")] for i in range(n)])
-    return float(np.std(q @ g + p @ h))
