@@ -204,6 +204,23 @@ def test_the_build_fails_when_maths_would_not_typeset_offline(tmp_path):
     assert not maths.writes_math("costs $5 or $10, `echo $PATH $HOME`\n```bash\necho $A$B\n```")
 
 
+def test_a_page_as_the_browser_shows_it_must_hold_its_figures_and_typeset_maths():
+    shots = _hook("screenshots")
+    built = '<img src="a.png"><span class="arithmatex">\\(x\\)</span><span class="arithmatex">\\(y\\)</span>'
+    typeset = '<img src="a.png"><span class="arithmatex"><mjx-container>x</mjx-container></span>' * 2
+    assert shots.problems(built, typeset) == []
+    assert shots.problems(built, '<img src="a.png"><span class="arithmatex">\\(x\\)</span>') == [
+        "2 equations written, 0 typeset by MathJax"
+    ]
+    assert shots.problems(built, typeset.replace("<img", "<p").replace("x</mjx", "<mjx-merror>x</mjx")) == [
+        "1 figures built, 0 in the browser's document",
+        "MathJax reports a TeX error",
+    ]
+    assert set(shots.PAGES) == {"front", "tutorial", "explanation", "gallery", "benchmark"}
+    for page in shots.PAGES.values():  # a page's folder in the site is its Markdown file, or its folder's index
+        assert (DOCS / f"{page.rstrip('/')}.md").is_file() or (DOCS / page / "index.md").is_file(), page
+
+
 def test_the_explanations_typeset_their_equations():
     maths = _hook("offline_maths")
     for page in ("explanation/sparse-bayes.md", "explanation/weak-form.md", "explanation/latent-states.md"):
