@@ -9,6 +9,7 @@ the Nyquist rate leaves no quiet band, and only the difference of periods tells 
 from __future__ import annotations
 
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -16,9 +17,10 @@ from electronic_duffing import Oscillator, extrapolating, multisine, saturating,
 from scipy.signal import lfilter
 
 import symsbl
-from symsbl._data.excitation import aperiodic_part, noise_std, period, period_noise_std, quiet_band_std
+from symsbl._data.excitation import aperiodic_part, noise_std, period, period_noise_std, quiet_band_std, relative_noise
 from symsbl._data.residuals import MODEL_ERROR, residual_test
 from symsbl._refine.diagnostics import noisy_inputs
+from symsbl._refine.path import _noise_floor
 
 
 def _median_of_fourths(x: np.ndarray) -> float:
@@ -154,6 +156,24 @@ def test_an_output_whose_noise_the_record_does_not_resolve_is_no_yardstick():
     levels = [noise_std(smooth.column(n), L) / smooth.column(n).std() for n in ("x", "v")]
     assert 0 < min(levels) and max(levels) < 1e-6
     assert noisy_inputs([smooth], ("x", "v"), ("F",)) == ()
+
+
+def test_the_noise_floor_takes_an_unresolved_channel_at_the_others_level():
+    """The model path's noise floor (a perfect model's cross-validated error, averaged over the channels) with x
+    low-passed as above and v at its 0.5 % noise: v's level, where x's unresolved 1e-9 halved it before."""
+    record = _saturating_record(0.0)
+    L = period(record.inputs)
+    x = np.tile(record.column("x")[:L], record.n_samples // L)
+    x = np.fft.irfft(np.where(np.fft.rfftfreq(x.size) <= 0.35 * 1.02, np.fft.rfft(x), 0.0), x.size)
+    x += 1e-9 * x.std() * np.random.default_rng(1).standard_normal(x.size)  # rounding
+    Y = np.column_stack([x, record.column("v")])
+    n = Y.shape[0]
+    passes = SimpleNamespace(
+        records=SimpleNamespace(n_total=n, Y=Y, starts=[0], lengths=[n]), valid=np.ones(Y.shape, bool), UN=record.inputs
+    )
+    assert np.isnan(relative_noise([x], [L]))
+    floor = _noise_floor(passes)
+    assert floor == relative_noise([record.column("v")], [L]) and floor == pytest.approx(0.005, rel=0.15)
 
 
 def test_the_period_of_an_oversampled_multisine_is_its_own_not_a_neighbour():

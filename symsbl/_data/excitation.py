@@ -21,7 +21,16 @@ import math
 
 import numpy as np
 
-__all__ = ["period", "period_noise_std", "quiet_band_std", "noise_std", "relative_noise", "aperiodic_part", "BLOCKS"]
+__all__ = [
+    "period",
+    "period_noise_std",
+    "quiet_band_std",
+    "noise_std",
+    "relative_noise",
+    "aperiodic_part",
+    "BLOCKS",
+    "RESOLVED",
+]
 
 #: Contiguous bands the periodogram is cut into; the quiet ones are those within :data:`QUIET` of the quietest.
 BLOCKS = 16
@@ -149,16 +158,32 @@ def noise_std(x: np.ndarray, length: int | None = None) -> float:
     return min(quiet, period_noise_std(x, length)) if length else quiet
 
 
+#: A relative noise below this is not told by the record (a 20-bit converter's step over its range is 1e-6): the
+#: channel was low-passed or reconstructed (an encoder's position filtered at 100 Hz reads 7e-12 on EMPS), and its
+#: noise, band-limited, is unknown rather than zero.
+RESOLVED = 1e-6
+
+
 def relative_noise(values: list[np.ndarray], periods: list[int | None]) -> float:
     """A column's white-noise standard deviation over its spread, pooled over records (``values``, each of
     period ``periods`` samples or None), each record's noise by :func:`noise_std`; non-finite samples left
-    out."""
+    out. NaN where the records do not resolve it (below :data:`RESOLVED`, or a constant column).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(20000) / 1000.0
+    >>> noisy = np.sin(2 * np.pi * t) + 0.01 * np.random.default_rng(0).standard_normal(t.size)
+    >>> round(relative_noise([noisy], [None]), 4), relative_noise([np.sin(2 * np.pi * t)], [None])
+    (0.0139, nan)
+    """
     finite = [v[np.isfinite(v)] for v in values]
     spread = float(np.std(np.concatenate(finite))) if finite else 0.0
     sizes = np.array([v.size for v in finite], dtype=float)
     levels = np.array([noise_std(v, p) ** 2 if v.size else 0.0 for v, p in zip(values, periods)])
     var = float(np.sum(sizes * levels) / max(sizes.sum(), 1.0))
-    return math.sqrt(var) / spread if spread > 0 else 0.0
+    level = math.sqrt(var) / spread if spread > 0 else 0.0
+    return level if level >= RESOLVED else math.nan
 
 
 def aperiodic_part(x: np.ndarray, length: int) -> np.ndarray:

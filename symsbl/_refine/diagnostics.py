@@ -45,16 +45,11 @@ from .._data.excitation import aperiodic_part, period, relative_noise
 from .._data.residuals import ResidualTest, explained_out_of_sample, ljung_box, residual_test
 from .noise import innovations
 
-__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE", "RESOLVED"]
+__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
 
 #: A measured input's relative noise (white-noise level over its spread) above this share of the outputs'
 #: smallest relative noise flags errors in variables.
 INPUT_NOISE = 0.3
-
-#: An output's relative noise below this is not told by the record (a 20-bit converter's step over its range is
-#: 1e-6): the channel was low-passed or reconstructed (an encoder's position filtered at 100 Hz reads 7e-12 on
-#: EMPS) and is left out of the outputs' smallest noise that :data:`INPUT_NOISE` compares an input's with.
-RESOLVED = 1e-6
 
 #: Lags of the residual tests (MATLAB's ``resid`` default).
 LAGS = 25
@@ -273,10 +268,11 @@ class Doubts:
 def noisy_inputs(records, measured, inputs) -> tuple[str, ...]:
     """The measured inputs of ``records`` whose white-noise level exceeds :data:`INPUT_NOISE` of the ``measured``
     outputs' smallest (errors in variables), one line each: a property of the data, not of a fit. Outputs whose
-    noise the record does not resolve (:data:`RESOLVED`) are left out; with none left, no input is flagged."""
+    noise the record does not resolve (:data:`~symsbl._data.excitation.RESOLVED`) are left out; with none left,
+    no input is flagged."""
     periods = [period(r.inputs) if r.inputs.size else None for r in records]
     outputs = [relative_noise([r.column(m) for r in records], periods) for m in measured]
-    floor = min((o for o in outputs if o >= RESOLVED), default=0.0)
+    floor = min((o for o in outputs if np.isfinite(o)), default=0.0)
     reasons = []
     for name in inputs:
         level = relative_noise([r.column(name) for r in records], periods)

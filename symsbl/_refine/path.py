@@ -78,7 +78,8 @@ def _noise_floor(passes) -> float:
     """The cross-validated error of a perfect model: each measured channel's noise relative to its spread, told
     from the excitation (:func:`symsbl._data.excitation.noise_std`: between periods, in the quiet bands; the
     third differences read a band that reaches a third of the sampling rate as noise), averaged over the
-    channels, as the folds' errors are."""
+    channels, as the folds' errors are. A channel whose noise the record does not resolve (low-passed,
+    reconstructed) is taken at the others' level, not at zero; 0 when none is resolved (no floor known)."""
     records = passes.records
     n = records.n_total
     Y, valid, U = records.Y, passes.valid[:n], passes.UN[:n]
@@ -88,7 +89,8 @@ def _noise_floor(passes) -> float:
         relative_noise([np.where(valid[a : a + m, c], Y[a : a + m, c], np.nan) for a, m in spans], periods)
         for c in range(Y.shape[1])
     ]
-    return float(np.mean(levels)) if levels else 0.0
+    resolved = [level for level in levels if np.isfinite(level)]
+    return float(np.mean(resolved)) if resolved else 0.0
 
 
 #: A chosen structure whose cross-validated error exceeds this many times the noise floor leaves more than noise.
