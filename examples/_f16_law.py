@@ -43,6 +43,11 @@ def law_expression(name: str, x):
     return {"q|q|": x * ca.fabs(x), "q^3": x**3, "p|p|": x * ca.fabs(x), "p^3": x**3}[name]
 
 
+def law_values(name: str, x: np.ndarray) -> np.ndarray:
+    """The law ``name`` at the values ``x``, as :func:`law_expression` computes it."""
+    return x * np.abs(x) if name.endswith("|") else x**3
+
+
 @dataclass(frozen=True)
 class Spectra:
     """The records on the excited lines: frequencies, responses (record, output, line), forces
@@ -231,7 +236,7 @@ def structure_name(laws) -> str:
     return " + ".join(laws) or "linear"
 
 
-def _mode_terms(model: IdentifiedModel):
+def mode_terms(model: IdentifiedModel):
     """The distorted mode's stiffness, damping, laws and their coefficients, as ``model`` holds them."""
     law = model.metadata["law"]
     mode = law["mode"] + 1
@@ -239,17 +244,19 @@ def _mode_terms(model: IdentifiedModel):
     return mode, -terms[f"q{mode}"], -terms[f"p{mode}"], law["laws"], np.array(law["coefs"], float)
 
 
-def equivalent_mode(model: IdentifiedModel, record: _f16.Record) -> tuple[float, float]:
-    """The distorted mode's equivalent natural frequency (Hz) and damping ratio under ``record``'s force."""
-    _, k0, c0, laws, coefs = _mode_terms(model)
-    f = np.fft.rfftfreq(_f16.PERIOD, 1 / record.fs)[_f16.excited(record.fs)]
-    k, c = equivalent(k0, c0, laws, coefs, _f16.force_lines(record), 2j * np.pi * f)
-    return float(np.sqrt(k) / (2 * np.pi)), float(c / (2 * np.sqrt(k)))
+def equivalent_mode(model: IdentifiedModel, record: _f16.Record, scale: float = 1.0) -> tuple[float, float, float]:
+    """The distorted mode's equivalent natural frequency (Hz) and damping ratio under ``record``'s force times
+    ``scale``, and the standard deviation of its q there."""
+    _, k0, c0, laws, coefs = mode_terms(model)
+    s = 2j * np.pi * np.fft.rfftfreq(_f16.PERIOD, 1 / record.fs)[_f16.excited(record.fs)]
+    force = scale * _f16.force_lines(record)
+    k, c = equivalent(k0, c0, laws, coefs, force, s)
+    return float(np.sqrt(k) / (2 * np.pi)), float(c / (2 * np.sqrt(k))), motion_sd(k, c, force, s)[0]
 
 
 def describe(model: IdentifiedModel) -> str:
     """The distorted mode's law as the model holds it: frequency, damping and each law's coefficient."""
-    mode, k, c, laws, coefs = _mode_terms(model)
+    mode, k, c, laws, coefs = mode_terms(model)
     head = f"p{mode}' = F - {k:.6g} q - {c:.4g} p"
     terms = "".join(f" {'-' if coef > 0 else '+'} {abs(coef):.4g} {n}" for n, coef in zip(laws, coefs))
     return f"{head}{terms}   (f0 {np.sqrt(k) / (2 * np.pi):.4f} Hz, damping ratio {c / (2 * np.sqrt(k)):.4f})"
