@@ -57,10 +57,16 @@ def read_record(path: Path) -> Record:
             float(np.ravel(raw["Fs"])[0]),
         )
     with path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
-    column = {name: np.array([float(r[name]) for r in rows]) for name in rows[0]}
-    acc = np.vstack([column[f"Acceleration{j}"] for j in (1, 2, 3)])
-    return Record(column["Force"], acc, float(column["Fs"][0]))
+        rows = [{k.strip(): (v or "").strip() for k, v in row.items() if k} for row in csv.DictReader(handle)]
+    needed = ["Force", "Acceleration1", "Acceleration2", "Acceleration3"]
+    if len(rows) <= PERIOD:  # the score is taken after the first period
+        raise ValueError(f"{len(rows)} rows, where a record holds more than one period ({PERIOD} samples)")
+    missing = [name for name in [*needed, "Fs"] if name not in rows[0]]
+    if missing:
+        raise ValueError(f"no column {', '.join(missing)}")
+    column = {name: np.array([float(r[name]) for r in rows]) for name in needed}  # Voltage is not read
+    rate = next((r["Fs"] for r in rows if r["Fs"]), "")  # the rate may be given in the first row only
+    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), float(rate))
 
 
 def excited(fs: float) -> np.ndarray:

@@ -44,14 +44,27 @@ def test_the_modal_fit_recovers_a_known_structure():
 
 
 def test_a_record_reads_the_same_from_the_benchmarks_csv_layout(tmp_path):
+    n = _f16.PERIOD + 8  # a record holds more than the period its score leaves out
     rng = np.random.default_rng(0)
-    force, acc = rng.normal(size=16), rng.normal(size=(3, 16))
+    force, acc = rng.normal(size=n), rng.normal(size=(3, n))
     rows = ["Force,Voltage,Acceleration1,Acceleration2,Acceleration3,Fs"]
-    rows += [f"{force[k]:.17g},0.5,{acc[0, k]:.17g},{acc[1, k]:.17g},{acc[2, k]:.17g},400" for k in range(16)]
+    rows += [f"{force[k]:.17g},0.5,{acc[0, k]:.17g},{acc[1, k]:.17g},{acc[2, k]:.17g},400" for k in range(n)]
     path = tmp_path / "level.csv"
     path.write_text("\n".join(rows) + "\n")
     record = _f16.read_record(path)
     assert np.array_equal(record.force, force) and np.array_equal(record.acc, acc) and record.fs == 400.0
+    # spaces after the commas, the rate in the first row only, the voltage left blank
+    rows = ["Force, Voltage, Acceleration1, Acceleration2, Acceleration3, Fs"]
+    rows += [
+        f"{force[k]:.17g}, , {acc[0, k]:.17g}, {acc[1, k]:.17g}, {acc[2, k]:.17g}, {'400' if k == 0 else ''}"
+        for k in range(n)
+    ]
+    path.write_text("\n".join(rows) + "\n")
+    record = _f16.read_record(path)
+    assert np.array_equal(record.force, force) and np.array_equal(record.acc, acc) and record.fs == 400.0
+    path.write_text("\n".join(rows[:17]) + "\n")
+    with pytest.raises(ValueError, match="more than one period"):  # 16 rows: nothing to score
+        _f16.read_record(path)
 
 
 @pytest.mark.slow
