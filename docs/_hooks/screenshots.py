@@ -14,7 +14,9 @@ without the ``docs`` extra.
 import functools
 import http.server
 import logging
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import threading
@@ -41,6 +43,7 @@ FLAGS = [
     "--disable-component-update",
     "--disable-sync",
     "--hide-scrollbars",
+    "--disable-dev-shm-usage",  # a container's small /dev/shm crashes the renderer
     "--virtual-time-budget=10000",  # the page's scripts (MathJax) run to the end before the capture
 ]
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
@@ -77,11 +80,45 @@ class _Quiet(http.server.SimpleHTTPRequestHandler):
         pass
 
 
-def _chromium(chromium: str, profile: str, *args: str) -> str:
-    run = subprocess.run(
-        [chromium, *FLAGS, f"--user-data-dir={profile}", *args], capture_output=True, text=True, timeout=120
+#: Seconds one page may take in the browser.
+TIMEOUT = 120
+
+
+def _chromium(chromium: str, profile: str, *args: str) -> str | None:
+    """The browser's standard output for ``args``; None when it failed or hung (its whole process group is
+    ended: a renderer left behind would hold the profile)."""
+    run = subprocess.Popen(
+        [chromium, *FLAGS, f"--user-data-dir={profile}", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        start_new_session=True,
     )
-    return run.stdout
+    try:
+        out, _ = run.communicate(timeout=TIMEOUT)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, signal.SIGKILL)
+        run.communicate()
+        return None
+    return out if run.returncode == 0 else None
+
+
+def _check(chromium: str, profile: str, site: Path, url: str, page: str, name: str) -> list[str]:
+    """What is wrong with ``page`` as the browser shows it at ``url``, its screenshot saved (empty: nothing)."""
+    built = site / page / "index.html"
+    if not built.is_file():
+        return ["not in the built site"]
+    shot = site / "screenshots" / f"{name}.png"
+    shot.unlink(missing_ok=True)  # a screenshot left by an earlier build is no evidence of this one
+    if _chromium(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url) is None:
+        return ["the browser failed or hung taking its screenshot"]
+    rendered = _chromium(chromium, profile, "--dump-dom", url)
+    if rendered is None or "</html>" not in rendered:
+        return ["the browser failed or hung rendering it"]
+    found = problems(built.read_text(), rendered)
+    if not shot.is_file() or shot.stat().st_size < 10_000:
+        found.append("no screenshot taken")
+    return found
 
 
 def on_post_build(config, **kwargs):
@@ -97,16 +134,10 @@ def on_post_build(config, **kwargs):
     server = _serve(site)
     failed = []
     try:
-        with tempfile.TemporaryDirectory() as profile:
+        with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
             for name, page in PAGES.items():
                 url = f"http://127.0.0.1:{server.server_address[1]}/{page}"
-                shot = site / "screenshots" / f"{name}.png"
-                _chromium(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url)
-                rendered = _chromium(chromium, profile, "--dump-dom", url)
-                built = (site / page / "index.html").read_text()
-                failed += [f"{page or 'index'}: {p}" for p in problems(built, rendered)]
-                if not shot.is_file() or shot.stat().st_size < 10_000:
-                    failed.append(f"{page or 'index'}: no screenshot taken")
+                failed += [f"{page or 'index'}: {p}" for p in _check(chromium, profile, site, url, page, name)]
     finally:
         server.shutdown()
     if failed:
