@@ -1,4 +1,4 @@
-"""The F-16 example's pieces: records, the modal start, the interface's candidates, the score.
+"""The F-16 example's pieces: records, their spectra, the modal fit and model, the score.
 
 See ``f16.py`` for the model and its argument; this module is what that script runs.
 """
@@ -56,11 +56,11 @@ def read_record(path: Path) -> Record:
             np.atleast_2d(raw["Acceleration"]).astype(float),
             float(np.ravel(raw["Fs"])[0]),
         )
-    with path.open(newline="") as handle:
+    with path.open(newline="", encoding="utf-8-sig") as handle:  # a spreadsheet's byte-order mark is no name
         rows = [{k.strip(): (v or "").strip() for k, v in row.items() if k} for row in csv.DictReader(handle)]
     needed = ["Force", "Acceleration1", "Acceleration2", "Acceleration3"]
-    if len(rows) <= PERIOD:  # the score is taken after the first period
-        raise ValueError(f"{len(rows)} rows, where a record holds more than one period ({PERIOD} samples)")
+    if len(rows) < 2 * PERIOD:  # the score is taken after the first period
+        raise ValueError(f"{len(rows)} rows, where a record holds two periods or more ({PERIOD} samples each)")
     missing = [name for name in [*needed, "Fs"] if name not in rows[0]]
     if missing:
         raise ValueError(f"no column {', '.join(missing)}")

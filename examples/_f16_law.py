@@ -216,7 +216,8 @@ def model_of(fit: JointFit) -> IdentifiedModel:
 
 def leave_one_level_out(records: list[_f16.Record], spec: Spectra, w0, zeta0, mode: int, structures=STRUCTURES):
     """Per structure, its fit on every record and each record's free-run error (% of each output's RMS,
-    rows: records; infinite where the model diverges) when the structure is fitted on the others only."""
+    rows: records; infinite where the model diverges) when the structure is fitted on the others only,
+    started from its fit on every record (so the record left out shaped the start: an optimistic score)."""
     table = {}
     for laws in structures:
         whole = fit_joint(spec, w0, zeta0, mode, laws)

@@ -84,7 +84,7 @@ def validate(model, names) -> int:
 
 
 def compare_on_estimation_levels() -> int:
-    """Score both saved models on every estimation level and the linear reference level."""
+    """Score both saved models on every level they were fitted to."""
     if not _f16.have_data(DATA):
         print(f"skipped: the F-16 benchmark data are not in {DATA}")
         return 77
