@@ -223,7 +223,10 @@ def test_time_from_sample_rate(tmp_path):
     np.testing.assert_array_equal(tr.t, np.arange(5) / 750.0)
     with pytest.raises(
         DataError,
-        match=exactly("fs: expected a positive sample rate in Hz when there is no time column, received None"),
+        match=exactly(
+            "fs: expected a positive sample rate in Hz when there is no time column, received none; name the time "
+            "column, or give the rate (--fs HZ on the command line, fs= in Python)"
+        ),
     ):
         read_trajectory(path, states=["y"], time=None)
 

@@ -341,7 +341,15 @@ def _time(columns, time, fs, n, path) -> np.ndarray:
             raise DataError(expected("fs", "a positive sample rate in Hz", fs))
     if time is None:
         if fs is None:
-            raise DataError(expected("fs", "a positive sample rate in Hz when there is no time column", None))
+            raise DataError(
+                expected(
+                    "fs",
+                    "a positive sample rate in Hz when there is no time column",
+                    "none",
+                    "name the time column, or give the rate (--fs HZ on the command line, fs= in Python)",
+                    raw=True,
+                )
+            )
         return np.arange(n) / fs
     t = _vector(columns, time, path)
     if t.size != n:
