@@ -35,13 +35,6 @@ class Record:
     acc: np.ndarray
     fs: float
 
-    def trajectory(self, periods) -> symsbl.Trajectory:
-        """The record's periods ``periods`` (0-based) as a trajectory of a1, a2, a3 and F."""
-        k = np.concatenate([np.arange(p * PERIOD, (p + 1) * PERIOD) for p in periods])
-        return symsbl.Trajectory(
-            np.arange(k.size) / self.fs, self.acc[:, k].T, self.force[k, None], ACCELERATIONS, ["F"]
-        )
-
 
 def have_data(folder: Path) -> bool:
     return all((folder / f"F16Data_FullMSine_Level{n}.mat").is_file() for n in (1, 3, 5, 7))
@@ -81,16 +74,25 @@ def _spectrum(x: np.ndarray) -> np.ndarray:
     return np.fft.rfft(x[..., : periods * PERIOD].reshape(*x.shape[:-1], periods, PERIOD)[..., 1:, :], axis=-1).mean(-2)
 
 
+def line_frequencies(fs: float) -> np.ndarray:
+    """The excited lines' frequencies (Hz) at the rate ``fs``."""
+    return np.fft.rfftfreq(PERIOD, 1 / fs)[excited(fs)]
+
+
 def force_lines(rec: Record) -> np.ndarray:
     """The force's spectrum on the excited lines, periods 2-9 averaged."""
     return _spectrum(rec.force)[excited(rec.fs)]
 
 
+def response(rec: Record) -> tuple[np.ndarray, np.ndarray]:
+    """The force's spectrum on the excited lines and the accelerations' response to it (rows), periods 2-9."""
+    force, lines = _spectrum(rec.force), excited(rec.fs)
+    return force[lines], (_spectrum(rec.acc) / force)[:, lines]
+
+
 def frf(records: list[Record]):
     """The mean frequency response acceleration/force on the excited lines, periods 2-9 of each record."""
-    responses = [_spectrum(rec.acc) / _spectrum(rec.force) for rec in records]
-    lines = excited(records[0].fs)
-    return np.fft.rfftfreq(PERIOD, 1 / records[0].fs)[lines], np.mean(responses, axis=0)[:, lines]
+    return line_frequencies(records[0].fs), np.mean([response(rec)[1] for rec in records], axis=0)
 
 
 def _design(f, w, zeta):
@@ -186,7 +188,7 @@ def simulate(model: IdentifiedModel, rec: Record) -> np.ndarray:
     return np.vstack([run.states[:, run.state_names.index(a)] for a in ACCELERATIONS])
 
 
-def _rms(rec: Record) -> np.ndarray:
+def rms(rec: Record) -> np.ndarray:
     """Each acceleration's RMS over periods 2-9, what the errors are given in % of."""
     return np.sqrt(np.mean(rec.acc[:, PERIOD:] ** 2, axis=1))
 
@@ -198,12 +200,12 @@ def score(model: IdentifiedModel, rec: Record) -> np.ndarray:
 
 
 def format_scores(errors, rec: Record) -> str:
-    return "   ".join(f"{a} {e:.4f} m/s^2 ({100 * e / r:.1f} %)" for a, e, r in zip(ACCELERATIONS, errors, _rms(rec)))
+    return "   ".join(f"{a} {e:.4f} m/s^2 ({100 * e / r:.1f} %)" for a, e, r in zip(ACCELERATIONS, errors, rms(rec)))
 
 
 def score_table(model: IdentifiedModel, rec: Record) -> str:
     """One line per acceleration: the free-run error RMS over periods 2-9, in m/s^2 and in % of its RMS."""
     return "\n".join(
         f"  Acceleration{j + 1}: {e:.4f} m/s^2 ({100 * e / r:.2f} % of its RMS {r:.4f} m/s^2)"
-        for j, (e, r) in enumerate(zip(score(model, rec), _rms(rec)))
+        for j, (e, r) in enumerate(zip(score(model, rec), rms(rec)))
     )

@@ -65,13 +65,9 @@ class Spectra:
 
 def spectra(records: list[_f16.Record]) -> Spectra:
     """The :class:`Spectra` of ``records``."""
-    H, F = [], []
-    for rec in records:
-        f, response = _f16.frf([rec])
-        H.append(response)
-        F.append(_f16.force_lines(rec))
-    rms = np.array([np.sqrt(np.mean(rec.acc[:, _f16.PERIOD :] ** 2, axis=1)) for rec in records])
-    return Spectra(f, np.array(H), np.array(F), rms)
+    F, H = zip(*(_f16.response(rec) for rec in records))
+    rms = np.array([_f16.rms(rec) for rec in records])
+    return Spectra(_f16.line_frequencies(records[0].fs), np.array(H), np.array(F), rms)
 
 
 def motion_sd(k: float, c: float, force: np.ndarray, s: np.ndarray) -> tuple[float, float]:
@@ -249,7 +245,7 @@ def equivalent_mode(model: IdentifiedModel, record: _f16.Record, scale: float = 
     """The distorted mode's equivalent natural frequency (Hz) and damping ratio under ``record``'s force times
     ``scale``, and the standard deviation of its q there."""
     _, k0, c0, laws, coefs = mode_terms(model)
-    s = 2j * np.pi * np.fft.rfftfreq(_f16.PERIOD, 1 / record.fs)[_f16.excited(record.fs)]
+    s = 2j * np.pi * _f16.line_frequencies(record.fs)
     force = scale * _f16.force_lines(record)
     k, c = equivalent(k0, c0, laws, coefs, force, s)
     return float(np.sqrt(k) / (2 * np.pi)), float(c / (2 * np.sqrt(k))), motion_sd(k, c, force, s)[0]
