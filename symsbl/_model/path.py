@@ -9,7 +9,7 @@ from dataclasses import dataclass
 __all__ = ["PathEntry", "ModelPath", "PATH_SOURCES"]
 
 #: Where a structure of a model path comes from.
-PATH_SOURCES = ("evidence", "equation error", "path")
+PATH_SOURCES = ("evidence", "equation error", "path", "path, screened")
 
 
 @dataclass(frozen=True)
@@ -32,8 +32,9 @@ class PathEntry:
     cv_se : float
         Standard error of the fold-by-fold difference from the best cross-validated structure (0 for it).
     source : str
-        Where the structure comes from: ``"evidence"`` (the term selection's), ``"equation error"``, or
-        ``"path"`` (a backward elimination step).
+        Where the structure comes from: ``"evidence"`` (the term selection's), ``"equation error"``,
+        ``"path"`` (a backward elimination step) or ``"path, screened"`` (a step whose refit was stopped after a
+        few passes, its error already far above the best's: the error and evidence there, not at its optimum).
     chosen : bool
 
     Examples

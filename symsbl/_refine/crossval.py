@@ -123,7 +123,10 @@ def cross_validate(passes: Passes, sol: Solution, cv: Folds) -> CrossValidation:
         # simulated free from it to its end
         lead_starts = np.unique(np.concatenate([starts, [a + cv.lead]]))
         it, _ = initial_states(
-            passes, Iterate(theta, simulated[lead_starts], passes.segments(lead_starts), sol.w, ar=sol.ar), sweeps=4
+            passes,
+            Iterate(theta, simulated[lead_starts], passes.segments(lead_starts), sol.w, ar=sol.ar),
+            sweeps=4,
+            rows=(int(a), int(a) + cv.lead),
         )
         x0 = simulated[starts].copy()
         x0[np.searchsorted(starts, a)] = it.X0[np.searchsorted(lead_starts, a)]

@@ -129,11 +129,18 @@ class Engine:
         return int(max(64, 8 * min(windows)))
 
     def fit(
-        self, active, theta0: np.ndarray, alpha0: np.ndarray, warm: Solution | None = None, longest: int | None = None
+        self,
+        active,
+        theta0: np.ndarray,
+        alpha0: np.ndarray,
+        warm: Solution | None = None,
+        longest: int | None = None,
+        screen: int | None = None,
     ) -> Solution:
         """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
         from the segments and initial states of ``warm`` when given, else by continuation from short segments
-        up to ``longest`` samples (default: whole records, or the engine's :attr:`longest`)."""
+        up to ``longest`` samples (default: whole records, or the engine's :attr:`longest`). ``screen``: at most
+        this many passes, at the start's noise precisions and prior (where the structure is heading)."""
         if self.longest is not None:
             longest = self.longest if longest is None else min(int(longest), self.longest)
         sol = fit(
@@ -148,6 +155,9 @@ class Engine:
             warm=warm,
             longest=longest,
             noise=self.noise,
+            update_noise=screen is None,
+            mackay=screen is None,
+            max_iter=60 if screen is None else int(screen),
         )
         if self.noise == "auto":
             self.noise = sol.noise.order

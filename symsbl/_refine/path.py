@@ -36,6 +36,9 @@ __all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND", "PATH_SAM
 MAX_PATH = 12
 #: A path stops descending once a structure's cross-validated error is this many times the best one's.
 STOP_RATIO = 4.0
+#: Passes of a backward step's screen: a structure near the path converges within them (8-9 measured), one
+#: that crawls for hundreds is judged by where they leave it.
+SCREEN_PASSES = 12
 
 
 def _names(engine: Engine, active) -> tuple:
@@ -50,9 +53,10 @@ def _names(engine: Engine, active) -> tuple:
     return tuple(out)
 
 
-def _backward(engine: Engine, sol, alpha: np.ndarray):
+def _backward(engine: Engine, sol, alpha: np.ndarray, screen: int | None = None):
     """The next structure below ``sol``: the term whose removal Bayesian model reduction says costs least, refitted
-    (None when every fitted equation is down to one term, or the refit runs away)."""
+    (None when every fitted equation is down to one term, or the refit runs away); ``screen``: the refit stopped
+    after that many passes (see :func:`symsbl._refine.engine.Engine.fit`)."""
     active = [int(k) for k in sol.active]
     per_equation: dict[int, list[int]] = {}
     for k in active:
@@ -68,7 +72,7 @@ def _backward(engine: Engine, sol, alpha: np.ndarray):
     start = np.zeros_like(sol.theta)
     start[keep] = mean
     try:
-        refit = engine.fit(keep, start, alpha, warm=sol)
+        refit = engine.fit(keep, start, alpha, warm=sol, screen=screen)
     except (SimulationError, np.linalg.LinAlgError):
         return None
     return refit if np.isfinite(refit.posterior.log_evidence) else None
@@ -204,15 +208,22 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
 
 def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
     """``(solution, source, fold errors)`` of the candidates and of the backward path from the union, which stops
-    descending once a structure's error is :data:`STOP_RATIO` times the best (simpler ones only lose more)."""
+    descending once a structure's error is :data:`STOP_RATIO` times the best (simpler ones only lose more).
+
+    Each step is screened first: its refit stopped after :data:`SCREEN_PASSES` passes. A structure already
+    :data:`STOP_RATIO` times the best there ends the path as it stands (source ``"path, screened"``): a
+    structure that wrong crawls towards its optimum for hundreds of passes, to be refused all the same."""
     seen: dict[frozenset[int], int] = {}
     entries: list[tuple[Solution, str, np.ndarray]] = []
 
-    def add(sol, source: str) -> float:
+    def errors(sol) -> np.ndarray:
+        return cross_validate(engine.passes, sol, cv).fold_errors
+
+    def add(sol, source: str, fold_errors=None) -> float:
         key = frozenset(int(k) for k in sol.active)
         if key not in seen:
             seen[key] = len(entries)
-            entries.append((sol, source, cross_validate(engine.passes, sol, cv).fold_errors))
+            entries.append((sol, source, errors(sol) if fold_errors is None else fold_errors))
         return float(np.mean(entries[seen[key]][2]))
 
     for source, sol in fits.items():
@@ -223,7 +234,14 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
         best = min(float(np.mean(e)) for _, _, e in entries)
         if not np.isfinite(latest) or latest > STOP_RATIO * best:
             break
-        current = _backward(engine, current, alpha)
+        screened = _backward(engine, current, alpha, SCREEN_PASSES)
+        if screened is None:
+            break
+        E = errors(screened)
+        if not np.isfinite(np.mean(E)) or np.mean(E) > STOP_RATIO * best:
+            add(screened, "path, screened", E)
+            break
+        current = _fit(engine, screened.active, screened.theta, alpha, warm=screened)  # on from the screen
         if current is None:
             break
         latest = add(current, "path")

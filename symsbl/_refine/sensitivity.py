@@ -334,6 +334,7 @@ class Passes:
         w: np.ndarray,
         ar: np.ndarray | None = None,
         stop=None,
+        rows: tuple[int, int] | None = None,
     ) -> Blocks:
         """The Gauss-Newton blocks of every segment of ``seg``.
 
@@ -355,6 +356,9 @@ class Passes:
             ``stop(cost)`` of the cost summed so far (half the weighted squared residuals, which only grow from
             chunk to chunk): when true, the pass ends there and its blocks carry an infinite cost (a trial step
             already refused, whatever the rest of the record holds).
+        rows : (int, int), optional
+            Only the rows ``[lo, hi)`` are simulated and counted, ``lo`` a segment's start (a window of a long
+            record: the chunks that hold it, the blocks of the segments outside it zero, their residuals NaN).
         """
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
@@ -372,22 +376,24 @@ class Passes:
         g = np.zeros((K, ns))
         rr = np.zeros((K, ny))
         kept = np.zeros((K, ny))
-        residual = np.empty((self.records.n_total, ny))
+        residual = np.empty((self.records.n_total, ny)) if rows is None else np.full((self.records.n_total, ny), np.nan)
         end_S = np.zeros((K, ns, nx))
         buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
         buf.set_res(0, _view(zout))  # type: ignore[call-arg]
         buf.set_res(1, _view(hout))  # type: ignore[call-arg]
         buf.set_res(2, _view(jout))  # type: ignore[call-arg]
         with one_blas_thread():
-            done = self._chunks(buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual, stop)
+            done = self._chunks(
+                buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual, stop, rows
+            )
         if not done:
             rr[:] = np.inf
         return Blocks(H, g, rr, end_S, kept, residual)
 
     @np.errstate(over="ignore", invalid="ignore")  # a simulation that runs away gives non-finite blocks, refused later
-    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None) -> bool:
+    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None, rows=None) -> bool:
         """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks;
-        False when ``stop`` ended the pass early."""
+        False when ``stop`` ended the pass early. ``rows``: see :meth:`sensitivities`."""
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
         zout, hout, jout = outs
@@ -395,7 +401,9 @@ class Passes:
         order = ar.shape[1]
         lag_r = np.zeros((order, ny))
         lag_j = np.zeros((order, ny, ns))
-        for c, a in enumerate(range(0, self.n_pad, C)):
+        lo, hi = (0, self.n_pad) if rows is None else (int(rows[0]), int(rows[1]))
+        for a in range(lo - lo % C, min(hi, self.n_pad), C):
+            c = a // C
             buf.set_arg(0, _view(z0))
             for i, arr in ((1, self.UD), (2, self.DT), (4, self._reset), (5, self._x_start), (6, self.UN)):
                 buf.set_arg(i, _view(arr[a : a + C]))
@@ -408,6 +416,8 @@ class Passes:
             residual[a : a + n] = np.where(self.valid[a : a + n], R, np.nan)
             J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)  # (n, ny, ns)
             E, EJ, keep = R, J, self.valid[a : a + n]
+            if rows is not None:  # the rows before the window were simulated from no state: they do not count
+                keep = keep & ((np.arange(a, a + n) >= lo) & (np.arange(a, a + n) < hi))[:, None]
             if order:
                 R_ext = np.concatenate([lag_r, R])
                 J_ext = np.concatenate([lag_j, J])

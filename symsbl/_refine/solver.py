@@ -250,15 +250,19 @@ def lm(
 
 @np.errstate(over="ignore", invalid="ignore")
 def initial_states(
-    passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3
+    passes: Passes, it: Iterate, sweeps: int = 3, tol: float = 0.1, rtol: float = 1e-3, rows=None
 ) -> tuple[Iterate, int]:
     """Gauss-Newton on the segments' initial states alone (coefficients fixed), accepted per segment; a
     segment whose step does not lower its cost tries a quarter of it next. At most ``sweeps`` sweeps, fewer
     once every segment's step was accepted and they gained less than ``tol`` nats or ``rtol`` of the cost
     together (the joint fit that follows finishes what is left: it is a start, not the answer). Returns the
-    iterate (with its pass) and the number of passes made."""
+    iterate (with its pass) and the number of passes made. ``rows``: only the segments within these rows are
+    fitted (see :meth:`~symsbl._refine.sensitivity.Passes.sensitivities`; the others' blocks are zero)."""
     npar = it.theta.size
-    it, n_pass = it.evaluated(passes)
+    if rows is None:
+        it, n_pass = it.evaluated(passes)
+    else:
+        it, n_pass = replace(it, blocks=passes.sensitivities(it.theta, it.X0, it.seg, it.w, it.ar, rows=rows)), 1
     X0, blocks = it.X0, it.made
     cost = 0.5 * blocks.rr.sum(1)
     shrink = np.ones(len(X0))
@@ -268,7 +272,7 @@ def initial_states(
         dxx = np.einsum("kii->ki", Hxx)
         Hxx[:, np.arange(nx), np.arange(nx)] += 1e-9 * dxx + 1e-300
         dX = np.linalg.solve(Hxx, blocks.g[:, npar:, None])[:, :, 0] * shrink[:, None]
-        trial = passes.sensitivities(it.theta, X0 + dX, it.seg, it.w, it.ar)
+        trial = passes.sensitivities(it.theta, X0 + dX, it.seg, it.w, it.ar, rows=rows)
         n_pass += 1
         c2 = 0.5 * trial.rr.sum(1)
         better = np.isfinite(c2) & (c2 <= cost)
@@ -320,11 +324,13 @@ def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
 NOISE_ROUNDS = 4
 
 
-def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white"):
+def _settle_noise(
+    passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white", max_iter: int = 60
+):
     """LM at the current noise model, then the noise re-estimated and LM again while it moves (its precisions by
     more than 2 %, an autoregressive coefficient by more than 0.01). ``noise``: "white", an autoregressive
-    order, or "auto" (the order chosen by BIC)."""
-    it, n = lm(passes, it, alpha, active, tol=tol)
+    order, or "auto" (the order chosen by BIC); ``max_iter``: LM passes of each round at most."""
+    it, n = lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
     if not update_noise:
         return it, n
     for _ in range(NOISE_ROUNDS):
@@ -340,7 +346,7 @@ def _settle_noise(passes: Passes, it: Iterate, alpha, active, tol: float, update
             break  # a residual that is not finite says nothing of the noise: its precisions stay as they were
         if trial is it and np.max(np.abs(np.log(w_new / it.w))) <= 0.02:
             break
-        it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=tol)
+        it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=tol, max_iter=max_iter)
         n += n2
         if ar is None:  # white noise: one re-estimate of the precisions, as the noise rarely moves again
             break
@@ -483,6 +489,7 @@ def _continuation(
     tol: float,
     update_noise: bool,
     noise="white",
+    max_iter: int = 60,
 ):
     """The stages of :func:`fit` from segments of ``length`` samples: ``iterate, length, stages, passes``.
 
@@ -496,7 +503,7 @@ def _continuation(
     while True:
         final = length >= full
         policy = noise if (final or noise != "auto") else it.order
-        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy)
+        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy, max_iter)
         n_pass += n
         phi = _growth(it.made.end_S, it.theta.size, scale)
         stages.append(_stage(length, it, n, phi))
@@ -511,7 +518,7 @@ def _continuation(
             if jumped:  # whole records that grew once fitted: lengthen stage by stage from before the jump
                 stages[-1]["back"], leap, jumped = True, False, False
                 continue
-            it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, noise)
+            it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, noise, max_iter)
             n_pass += n
             stages.append(_stage(length, it, n, float("nan"), back=True))
             break
@@ -549,6 +556,7 @@ def fit(
     warm: Solution | None = None,
     longest: int | None = None,
     noise="white",
+    max_iter: int = 60,
 ) -> Solution:
     """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
 
@@ -579,6 +587,9 @@ def fit(
         The noise model: white, autoregressive of the order chosen by BIC on the final stage's residual, or of
         a given order (its coefficients estimated alternately with the model's; see
         :mod:`symsbl._refine.noise`).
+    max_iter : int
+        Levenberg-Marquardt passes of each round at most (a screen passes few, with neither the noise nor the
+        prior re-estimated: where a structure is heading, not its optimum).
     """
     theta, alpha = np.array(theta0, dtype=float), np.array(alpha0, dtype=float)
     active = np.arange(theta.size) if active is None else np.asarray(active, dtype=int)
@@ -598,18 +609,18 @@ def fit(
         starts = passes.segment_starts(length)
         it, n_pass = initial_states(passes, Iterate(theta, guess[starts].copy(), passes.segments(starts), w))
     it, length, stages, n = _continuation(
-        passes, it, alpha, active, guess, length, full, growth, tol, update_noise, noise
+        passes, it, alpha, active, guess, length, full, growth, tol, update_noise, noise, max_iter
     )
     n_pass += n
     if noise == "auto" and length < full and update_noise:  # the continuation stopped short: choose it here
-        it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto")
+        it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto", max_iter)
         n_pass += n
         stages.append(_stage(length, it, n, float("nan"), noise=it.order))
     _require_finite(it.theta, it.made.H)
     if mackay:
         alpha = _prior_precisions(it.made.H, it.theta, alpha, active)
         # the blocks at the optimum do not depend on the prior: the pass made there is the first of this fit
-        it, n = lm(passes, it, alpha, active, tol=tol)
+        it, n = lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
         n_pass += n
     Hs, _ = restrict(it.made.H, None, active, it.theta.size)
     cost = _objective(it.made, it.theta, alpha, active)
