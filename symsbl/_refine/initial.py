@@ -28,6 +28,13 @@ __all__ = ["initial_state", "fitted_start", "short_horizons"]
 #: another basin of a nonlinear response: measured on a 6001-sample, displacement-only record of a 2-DOF chain
 #: with a cubic spring, 35 % NRMSE from the whole record at once, 1.0 % (its noise) grown from 256 samples.
 FIRST_STRETCH, GROWTH = 256, 8
+#: Gauss-Newton sweeps of a stretch's fit at most.
+SWEEPS = 8
+#: Samples times passes from which a stretch's passes are compiled: a pass of fixed coefficients costs about
+#: 0.6 us a sample on CasADi's virtual machine and 0.1 us compiled, and compiling it about 0.25 s of gcc
+#: (measured on a Duffing oscillator; both grow with the model), so a validation record of 8192 samples
+#: fitted in at most nine passes runs sooner uncompiled.
+COMPILED_WORK = 2**19
 
 
 def initial_state(
@@ -78,8 +85,9 @@ def fitted_start(
     x0 = np.asarray(guess, dtype=float)
     span = min(n, FIRST_STRETCH)
     while True:
+        worth = span == n and span * (SWEEPS + 1) >= COMPILED_WORK
         x0, phi = _fit(
-            model, data.slice(0, span), observed, x0, interpolation, substeps, jit="auto" if span == n else False
+            model, data.slice(0, span), observed, x0, interpolation, substeps, jit="auto" if worth else False
         )
         if span == n:
             break
@@ -129,7 +137,7 @@ def _fit(model, record, observed, guess, interpolation, substeps, jit) -> tuple[
     fitted = _smoothed(model, record, observed)
     passes, rows, w = _passes(fitted, record, observed, interpolation, substeps, jit)
     start = Iterate(np.zeros(0), guess[None, :], passes.segments(np.array([0])), w)
-    it, _ = initial_states(passes, start, sweeps=8, rtol=0.0)
+    it, _ = initial_states(passes, start, sweeps=SWEEPS, rtol=0.0)
     assert it.blocks is not None  # initial_states returns the iterate with its pass
     phi = _growth(it.blocks.end_S, 0, _state_scale(rows, it.X0))
     return (it.X0[0] if np.all(np.isfinite(it.X0)) else guess), phi
