@@ -196,7 +196,8 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
         return None, {}
     fits = {"evidence": _fit(engine, engine.base, theta0, alpha, warm=union)}
     ee = _positions(engine, start)
-    if ee:  # from the equation error's own coefficients, by continuation: the union's are fitted with other terms
+    same = fits["evidence"] is not None and set(ee) == set(engine.base.tolist())  # entered once, as the evidence's
+    if ee and not same:  # from the equation error's own coefficients, by continuation: the union's have other terms
         own = theta0.copy()
         for k in ee:
             i, j = engine.positions[k]
