@@ -57,9 +57,17 @@ def read_record(path: Path) -> Record:
     missing = [name for name in [*needed, "Fs"] if name not in rows[0]]
     if missing:
         raise ValueError(f"no column {', '.join(missing)}")
-    column = {name: np.array([float(r[name]) for r in rows]) for name in needed}  # Voltage is not read
-    rate = next((r["Fs"] for r in rows if r["Fs"]), "")  # the rate may be given in the first row only
-    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), float(rate))
+    column = {name: np.array([_number(r[name], k, name) for k, r in enumerate(rows)]) for name in needed}
+    at = next((k for k, r in enumerate(rows) if r["Fs"]), 0)  # the rate may be given in the first row only
+    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), _number(rows[at]["Fs"], at, "Fs"))
+
+
+def _number(text: str, row: int, name: str) -> float:
+    """The number in the cell of column ``name`` on data row ``row`` (0 first), or one line naming the cell."""
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"line {row + 2}, column {name}: expected a number, received {text!r}") from None
 
 
 def excited(fs: float) -> np.ndarray:
@@ -194,7 +202,7 @@ def rms(rec: Record) -> np.ndarray:
 
 
 def score(model: IdentifiedModel, rec: Record) -> np.ndarray:
-    """RMS of the free-run error per acceleration over periods 2-9 (m/s^2)."""
+    """RMS of the free-run error per acceleration after the first period (periods 2-9 of a benchmark record; m/s^2)."""
     error = (simulate(model, rec) - rec.acc)[:, PERIOD:]
     return np.sqrt(np.mean(error**2, axis=1))
 
@@ -204,7 +212,7 @@ def format_scores(errors, rec: Record) -> str:
 
 
 def score_table(model: IdentifiedModel, rec: Record) -> str:
-    """One line per acceleration: the free-run error RMS over periods 2-9, in m/s^2 and in % of its RMS."""
+    """One line per acceleration: the free-run error RMS after the first period, in m/s^2 and in % of its RMS."""
     return "\n".join(
         f"  Acceleration{j + 1}: {e:.4f} m/s^2 ({100 * e / r:.2f} % of its RMS {r:.4f} m/s^2)"
         for j, (e, r) in enumerate(zip(score(model, rec), rms(rec)))

@@ -65,6 +65,10 @@ def test_a_record_reads_the_same_from_the_benchmarks_csv_layout(tmp_path):
     path.write_text("\n".join(rows[:17]) + "\n")
     with pytest.raises(ValueError, match="two periods or more"):  # 16 rows: nothing to score
         _f16.read_record(path)
+    bad = rows[:6] + [rows[6].replace(f"{acc[1, 5]:.17g}", "n/a")] + rows[7:]  # data row 5 is line 7
+    path.write_text("\n".join(bad) + "\n")
+    with pytest.raises(ValueError, match=r"^line 7, column Acceleration2: expected a number, received 'n/a'$"):
+        _f16.read_record(path)
 
 
 @pytest.mark.slow
