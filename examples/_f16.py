@@ -50,24 +50,28 @@ def read_record(path: Path) -> Record:
             float(np.ravel(raw["Fs"])[0]),
         )
     with path.open(newline="", encoding="utf-8-sig") as handle:  # a spreadsheet's byte-order mark is no name
-        rows = [{k.strip(): (v or "").strip() for k, v in row.items() if k} for row in csv.DictReader(handle)]
+        reader = csv.DictReader(handle)
+        rows, lines = [], []  # each row's cells, and the line of the file it ends on (blank lines are skipped)
+        for row in reader:
+            rows.append({k.strip(): (v or "").strip() for k, v in row.items() if k})
+            lines.append(reader.line_num)
     needed = ["Force", "Acceleration1", "Acceleration2", "Acceleration3"]
     if len(rows) < 2 * PERIOD:  # the score is taken after the first period
         raise ValueError(f"{len(rows)} rows, where a record holds two periods or more ({PERIOD} samples each)")
     missing = [name for name in [*needed, "Fs"] if name not in rows[0]]
     if missing:
         raise ValueError(f"no column {', '.join(missing)}")
-    column = {name: np.array([_number(r[name], k, name) for k, r in enumerate(rows)]) for name in needed}
+    column = {name: np.array([_number(r[name], line, name) for r, line in zip(rows, lines)]) for name in needed}
     at = next((k for k, r in enumerate(rows) if r["Fs"]), 0)  # the rate may be given in the first row only
-    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), _number(rows[at]["Fs"], at, "Fs"))
+    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), _number(rows[at]["Fs"], lines[at], "Fs"))
 
 
-def _number(text: str, row: int, name: str) -> float:
-    """The number in the cell of column ``name`` on data row ``row`` (0 first), or one line naming the cell."""
+def _number(text: str, line: int, name: str) -> float:
+    """The number in the cell of column ``name`` on ``line`` of the file, or one line naming the cell."""
     try:
         return float(text)
     except ValueError:
-        raise ValueError(f"line {row + 2}, column {name}: expected a number, received {text!r}") from None
+        raise ValueError(f"line {line}, column {name}: expected a number, received {text!r}") from None
 
 
 def excited(fs: float) -> np.ndarray:

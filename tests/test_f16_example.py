@@ -69,6 +69,9 @@ def test_a_record_reads_the_same_from_the_benchmarks_csv_layout(tmp_path):
     path.write_text("\n".join(bad) + "\n")
     with pytest.raises(ValueError, match=r"^line 7, column Acceleration2: expected a number, received 'n/a'$"):
         _f16.read_record(path)
+    path.write_text("\n".join(bad[:3] + [""] + bad[3:]) + "\n")  # a blank line above it: the file's own line count
+    with pytest.raises(ValueError, match=r"^line 8, column Acceleration2"):
+        _f16.read_record(path)
 
 
 @pytest.mark.slow

@@ -217,11 +217,11 @@ def test_the_library_is_said_to_lack_the_law_when_the_residual_follows_the_traje
     assert beyond_library([3, 4, 5], exact, 1, 0.031, 0.1, follows=0.01) is None
 
 
-def _duffing_by_multisine():
+def _duffing_by_multisine(seconds: float = 1.0):
     x1, x2, F = symsbl.symbols("x1 x2 F")
     train = symsbl.simulate(
         symsbl.systems.duffing(),
-        symsbl.time_grid(1.0, 4096),
+        symsbl.time_grid(seconds, 4096),
         inputs=symsbl.Multisine(rms=60.0, f_min=2.0, f_max=30.0, seed=1),
     ).with_noise(0.01, seed=0)
     return train, symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
@@ -229,45 +229,56 @@ def _duffing_by_multisine():
 
 def test_a_backward_step_far_from_the_best_is_screened_and_the_choice_is_the_same(monkeypatch, tmp_path):
     """A Duffing oscillator (x^3 carrying most of the force) by multisine: the backward step that removes x^3
-    is screened after a dozen passes, already far beyond four times the best error, and ends the path as
-    "path, screened"; refitted to the end instead (a screen of thousands of passes), the chosen model is the
-    same to the last digit. The screened entry survives a model file."""
+    is screened after a dozen passes, already far beyond the screen's bound on the best error, and ends the path
+    marked screened; with every step refitted to its optimum instead (no screen), the chosen model is the same
+    to the last digit. The mark survives a model file, whose entry an earlier release reads as a "path" one."""
+    from symsbl._model.path import PATH_SOURCES
     from symsbl._refine import path
 
     train, library = _duffing_by_multisine()
     model = symsbl.identify(train, library)
     entries = list(model.path)
-    screened = [e for e in entries if e.source == "path, screened"]
+    screened = [e for e in entries if e.screened]
     chosen = model.path.chosen
-    assert len(screened) == 1 and chosen is not None and chosen.source == "evidence"
+    assert len(screened) == 1 and screened[0].source == "path" and chosen is not None and chosen.source == "evidence"
     assert "x1**3" not in screened[0].names("x2") and "x1**3" in chosen.names("x2")
-    assert screened[0].cv_error > path.STOP_RATIO * min(e.cv_error for e in entries)
-    monkeypatch.setattr(path, "SCREEN_PASSES", 10_000)
+    assert screened[0].cv_error > path.SCREEN_STOP * min(e.cv_error for e in entries)
+    assert "path, screened" in str(model.path)
+    monkeypatch.setattr(path, "SCREEN_PASSES", None)  # every backward step refitted to its optimum
     again = symsbl.identify(train, library)
     assert str(again) == str(model) and again.path.chosen == chosen
     model.save(tmp_path / "m.json")
     assert symsbl.IdentifiedModel.load(tmp_path / "m.json").path == model.path
+    written = json.loads((tmp_path / "m.json").read_text())["path"]["entries"]
+    assert all(e["source"] in PATH_SOURCES for e in written) and sum(e.get("screened", False) for e in written) == 1
 
 
-def test_a_windowed_pass_fits_a_lead_state_as_a_pass_over_every_sample_does():
-    """The cross-validation fits each fold's initial state on its lead: the pass over the chunks holding that
-    window gives the same state as the pass over every sample (whose other segments do not change it), and the
-    other segments' blocks are zero."""
+def test_a_windowed_pass_is_the_full_pass_on_its_window():
+    """The cross-validation fits each fold's initial state on its lead: a pass over the chunks holding that
+    window gives the window's segment the blocks, residual and end sensitivities of the pass over every sample,
+    zero blocks to the other segments and NaN residuals outside it, for a window inside a chunk and one across
+    a chunk boundary; and the lead's state fitted on it is the one fitted with passes over every sample."""
     from symsbl._refine.solver import Iterate, initial_states
 
-    train, library = _duffing_by_multisine()
+    train, library = _duffing_by_multisine(4.0)
     model = symsbl.identify(train, library)
     engine = Engine(model, [train], ("x1", "x2"), Settings(), {})
     passes = engine.passes
-    a, lead = 1500, 256  # a lead inside the record, across a chunk boundary or not
-    starts = np.array([0, a, a + lead])
-    seg = passes.segments(starts)
-    guess = engine.guess[starts] * 1.01  # a start off the states
+    theta = engine.param.theta0.copy()
     w = 1.0 / (0.01 * np.std(train.states, axis=0)) ** 2  # the record's noise precisions
-    start = Iterate(engine.param.theta0.copy(), guess, seg, w)
-    full, n_full = initial_states(passes, start, sweeps=4, tol=0.0, rtol=0.0)
-    window, n_window = initial_states(passes, start, sweeps=4, tol=0.0, rtol=0.0, rows=(a, a + lead))
-    assert n_full == n_window == 5
-    assert not np.allclose(full.X0[1], guess[1], rtol=1e-3)  # the fit moved the state
-    assert window.X0[1] == pytest.approx(full.X0[1], rel=1e-9, abs=1e-12)
-    assert np.all(window.made.H[[0, 2]] == 0) and np.any(window.made.H[1] != 0)
+    assert passes.records.n_total > 3 * passes.chunk
+    for a, lead in ((1500, 256), (passes.chunk - 100, 300), (2 * passes.chunk, 512)):
+        starts = np.array([0, a, a + lead])
+        seg = passes.segments(starts)
+        X0 = engine.guess[starts] * 1.01  # a start off the states
+        full = passes.sensitivities(theta, X0, seg, w)
+        window = passes.sensitivities(theta, X0, seg, w, rows=(a, a + lead))
+        for got, want in ((window.H, full.H), (window.g, full.g), (window.rr, full.rr), (window.end_S, full.end_S)):
+            assert got[1] == pytest.approx(want[1], rel=1e-12) and np.all(got[[0, 2]] == 0)
+        assert np.array_equal(window.residual[a : a + lead], full.residual[a : a + lead])
+        assert np.isnan(np.delete(window.residual, np.s_[a : a + lead], axis=0)).all()
+        start = Iterate(theta, X0, seg, w)
+        fitted, n_full = initial_states(passes, start, sweeps=4, tol=0.0, rtol=0.0)
+        lead_only, n_window = initial_states(passes, start, sweeps=4, tol=0.0, rtol=0.0, rows=(a, a + lead))
+        assert n_full == n_window == 5 and not np.allclose(fitted.X0[1], X0[1], rtol=1e-3)  # the state moved
+        assert lead_only.X0[1] == pytest.approx(fitted.X0[1], rel=1e-9, abs=1e-12)

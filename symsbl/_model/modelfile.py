@@ -484,6 +484,7 @@ def _path(doc) -> ModelPath:
                 for k in ("log_evidence", "objective", "cv_error", "cv_se")
             )
             ok = ok and e.get("source") in PATH_SOURCES and isinstance(e.get("chosen"), bool)
+            ok = ok and isinstance(e.get("screened", False), bool)
     if not ok:
         raise DataError(
             expected(

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 __all__ = ["PathEntry", "ModelPath", "PATH_SOURCES"]
 
 #: Where a structure of a model path comes from.
-PATH_SOURCES = ("evidence", "equation error", "path", "path, screened")
+PATH_SOURCES = ("evidence", "equation error", "path")
 
 
 @dataclass(frozen=True)
@@ -32,10 +32,13 @@ class PathEntry:
     cv_se : float
         Standard error of the fold-by-fold difference from the best cross-validated structure (0 for it).
     source : str
-        Where the structure comes from: ``"evidence"`` (the term selection's), ``"equation error"``,
-        ``"path"`` (a backward elimination step) or ``"path, screened"`` (a step whose refit was stopped after a
-        few passes, its error already far above the best's: the error and evidence there, not at its optimum).
+        Where the structure comes from: ``"evidence"`` (the term selection's), ``"equation error"``, or
+        ``"path"`` (a backward elimination step).
     chosen : bool
+    screened : bool
+        A backward step whose refit was stopped after a few passes, its error already far above the best's:
+        its error and evidence are where the refit stood then, not at its optimum (printed as source
+        ``path, screened``; written to a model file only when true).
 
     Examples
     --------
@@ -53,6 +56,7 @@ class PathEntry:
     cv_se: float
     source: str
     chosen: bool = False
+    screened: bool = False
 
     def names(self, lhs: str) -> list[str]:
         """The terms of the equation of ``lhs``."""
@@ -69,7 +73,7 @@ class PathEntry:
             "cv_se": finite(self.cv_se),
             "source": self.source,
             "chosen": self.chosen,
-        }
+        } | ({"screened": True} if self.screened else {})
 
     @classmethod
     def from_json(cls, doc: dict) -> PathEntry:
@@ -85,6 +89,7 @@ class PathEntry:
             num(doc["cv_se"]),
             str(doc["source"]),
             bool(doc["chosen"]),
+            bool(doc.get("screened", False)),
         )
 
 
@@ -129,7 +134,7 @@ class ModelPath:
             se = f"{100 * e.cv_se:7.2g}" if math.isfinite(e.cv_se) else f"{'':>7}"
             rows.append(
                 f"{'*' if e.chosen else ' '} {e.n_terms:5d}  {e.log_evidence:12.6g}  {e.objective:10.6g}  "
-                f"{cv}   {se}   {e.source:<14}  {structure}"
+                f"{cv}   {se}   {e.source + (', screened' if e.screened else ''):<14}  {structure}"
             )
         if self.rule:
             rows.append(f"(* chosen: {self.rule})")

@@ -11,8 +11,8 @@ error of the *measured* states, each weighted by its own noise level, on one or 
   the segment length (multiple shooting without continuity constraints, merged until one segment
   spans each record);
 - :mod:`.laplace`: posterior, evidence, prior precisions, Bayesian model reduction;
-- :mod:`.candidates`: what the selection tries (the equation-error runners-up and look-alikes) and
-  the prior of each;
+- :mod:`.candidates`: what the selection tries (the equation-error runners-up, look-alikes and terms of one
+  variable) and the prior of each;
 - :mod:`.screen`: library terms scored by the output error when a state is not measured;
 - :mod:`.selection`: term selection on the output-error evidence;
 - :mod:`.engine`: one fit of one structure, and the refined model;

@@ -147,10 +147,11 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
 
         kept = usable([n for t in eq.terms for n in t.alternatives] + list(alike))[:PER_EQUATION]
         kept += [n for n in usable(eq.runners_up) if n not in kept]
+        pairs = {n: alike[n] for n in kept if n in alike}  # a term of one variable added below goes beside
         kept += [n for n in usable(alone) if n not in kept]
         if kept:
             out[eq.lhs] = [(library[n].expr, 0.0) for n in kept]
-            twins[eq.lhs] = {n: alike[n] for n in kept if n in alike}
+            twins[eq.lhs] = pairs
     return out, twins
 
 

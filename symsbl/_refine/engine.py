@@ -140,7 +140,8 @@ class Engine:
         """Fit the coefficients ``active`` (indices into the compiled structure's), the others held at ``theta0``;
         from the segments and initial states of ``warm`` when given, else by continuation from short segments
         up to ``longest`` samples (default: whole records, or the engine's :attr:`longest`). ``screen``: at most
-        this many passes, at the start's noise precisions and prior (where the structure is heading)."""
+        this many Levenberg-Marquardt steps after the first pass, at the start's noise precisions and prior
+        (where the structure is heading, not its optimum)."""
         if self.longest is not None:
             longest = self.longest if longest is None else min(int(longest), self.longest)
         sol = fit(

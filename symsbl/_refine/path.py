@@ -36,9 +36,14 @@ __all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND", "PATH_SAM
 MAX_PATH = 12
 #: A path stops descending once a structure's cross-validated error is this many times the best one's.
 STOP_RATIO = 4.0
-#: Passes of a backward step's screen: a structure near the path converges within them (8-9 measured), one
-#: that crawls for hundreds is judged by where they leave it.
+#: Levenberg-Marquardt steps of a backward step's screen: a structure near the path converges within them (8-9
+#: measured), one that crawls for hundreds is judged by where they leave it.
 SCREEN_PASSES = 12
+#: A screened structure this many times the best error ends the path: twice :data:`STOP_RATIO`, as a screen
+#: stopped short of its optimum only bounds where the refit would end (in the demo, 12-1e20 times).
+SCREEN_STOP = 2 * STOP_RATIO
+#: The source of a screened structure among the path's entries (a ``"path"`` entry marked ``screened``).
+SCREENED = "path, screened"
 
 
 def _names(engine: Engine, active) -> tuple:
@@ -212,8 +217,8 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
     descending once a structure's error is :data:`STOP_RATIO` times the best (simpler ones only lose more).
 
     Each step is screened first: its refit stopped after :data:`SCREEN_PASSES` passes. A structure already
-    :data:`STOP_RATIO` times the best there ends the path as it stands (source ``"path, screened"``): a
-    structure that wrong crawls towards its optimum for hundreds of passes, to be refused all the same."""
+    :data:`SCREEN_STOP` times the best there ends the path as it stands (:data:`SCREENED`): a structure that
+    wrong crawls towards its optimum for hundreds of passes, to be refused all the same."""
     seen: dict[frozenset[int], int] = {}
     entries: list[tuple[Solution, str, np.ndarray]] = []
 
@@ -238,15 +243,26 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
         screened = _backward(engine, current, alpha, SCREEN_PASSES)
         if screened is None:
             break
+        key = frozenset(int(k) for k in screened.active)
+        if key in seen:  # a structure fitted already (the evidence's): the path goes on from its own fit
+            current, latest = entries[seen[key]][0], float(np.mean(entries[seen[key]][2]))
+            continue
         E = errors(screened)
-        if not np.isfinite(np.mean(E)) or np.mean(E) > STOP_RATIO * best:
-            add(screened, "path, screened", E)
+        if not np.isfinite(np.mean(E)) or np.mean(E) > SCREEN_STOP * best:
+            add(screened, SCREENED, E)
             break
-        current = _fit(engine, screened.active, screened.theta, alpha, warm=screened)  # on from the screen
+        current = _finished(engine, screened, alpha)
         if current is None:
             break
         latest = add(current, "path")
     return entries
+
+
+def _finished(engine: Engine, screened, alpha: np.ndarray):
+    """The refit of a screened structure carried on from the screen to its optimum (None: it ran away), the
+    screen's passes counted in it."""
+    sol = _fit(engine, screened.active, screened.theta, alpha, warm=screened)
+    return None if sol is None else dataclasses.replace(sol, n_pass=sol.n_pass + screened.n_pass)
 
 
 #: Samples the path fits and cross-validates at most: longer data (the windows of a long record) contribute each
@@ -314,25 +330,10 @@ def choose_structure(
     E = np.array([e for _, _, e in entries])
     floor = _noise_floor(engine.passes)
     chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
-    mean = mean_errors(E)
-    best = int(np.argmin(mean))
-    path = ModelPath(
-        tuple(
-            PathEntry(
-                _names(engine, entries[k][0].active),
-                sizes[k],
-                float(entries[k][0].posterior.log_evidence),
-                objectives[k],
-                float(mean[k]),
-                paired_se(E[k], E[best]),
-                entries[k][1],
-                k == chosen,
-            )
-            for k in sorted(range(len(entries)), key=lambda k: (sizes[k], -objectives[k]))
-        ),
-        reason,
-    )
+    path = _table(engine, entries, sizes, objectives, chosen, reason)
     sol = entries[chosen][0]
+    if entries[chosen][1] == SCREENED:  # chosen on the evidence alone (no structure simulated every fold)
+        sol = _finished(engine, sol, alpha) or sol
     if entries[chosen][1] == "evidence":
         meta = dict(refined.metadata.get("refine", {}), noise_floor=floor)
         meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
@@ -354,6 +355,30 @@ def choose_structure(
     )
     meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
     return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
+
+
+def _table(engine: Engine, entries: list, sizes: list, objectives: list, chosen: int, reason: str) -> ModelPath:
+    """The model path of the scored ``entries`` (``(solution, source, fold errors)``), simplest first."""
+    E = np.array([e for _, _, e in entries])
+    mean = mean_errors(E)
+    best = int(np.argmin(mean))
+    return ModelPath(
+        tuple(
+            PathEntry(
+                _names(engine, entries[k][0].active),
+                sizes[k],
+                float(entries[k][0].posterior.log_evidence),
+                objectives[k],
+                float(mean[k]),
+                paired_se(E[k], E[best]),
+                "path" if entries[k][1] == SCREENED else entries[k][1],
+                k == chosen,
+                entries[k][1] == SCREENED,
+            )
+            for k in sorted(range(len(entries)), key=lambda k: (sizes[k], -objectives[k]))
+        ),
+        reason,
+    )
 
 
 def _follows(meta: dict) -> float:

@@ -360,7 +360,8 @@ class Passes:
             already refused, whatever the rest of the record holds).
         rows : (int, int), optional
             Only the rows ``[lo, hi)`` are simulated and counted, ``lo`` a segment's start (a window of a long
-            record: the chunks that hold it, the blocks of the segments outside it zero, their residuals NaN).
+            record: the chunks that hold it). The blocks and end sensitivities of the segments outside it are
+            zero, the residual NaN outside it.
         """
         lay, C = self.layout, self.chunk
         nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
@@ -379,6 +380,7 @@ class Passes:
         rr = np.zeros((K, ny))
         kept = np.zeros((K, ny))
         residual = np.empty((self.records.n_total, ny)) if rows is None else np.full((self.records.n_total, ny), np.nan)
+        assert rows is None or np.any(seg.starts == rows[0])  # the window starts where a segment does
         end_S = np.zeros((K, ns, nx))
         buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
         buf.set_res(0, _view(zout))  # type: ignore[call-arg]
@@ -415,11 +417,14 @@ class Passes:
             if n <= 0:
                 break
             R = self.Y[a : a + n] - hout[:n]  # (n, ny)
-            residual[a : a + n] = np.where(self.valid[a : a + n], R, np.nan)
             J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)  # (n, ny, ns)
-            E, EJ, keep = R, J, self.valid[a : a + n]
+            keep = self.valid[a : a + n]
             if rows is not None:  # the rows before the window were simulated from no state: they do not count
-                keep = keep & ((np.arange(a, a + n) >= lo) & (np.arange(a, a + n) < hi))[:, None]
+                inside = (np.arange(a, a + n) >= lo) & (np.arange(a, a + n) < hi)
+                keep = keep & inside[:, None]
+                R, J = np.where(inside[:, None], R, 0.0), np.where(inside[:, None, None], J, 0.0)
+            residual[a : a + n] = np.where(keep, R, np.nan)
+            E, EJ = R, J
             if order:
                 R_ext = np.concatenate([lag_r, R])
                 J_ext = np.concatenate([lag_j, J])
@@ -436,7 +441,7 @@ class Passes:
             p0, p1 = seg.chunk_pieces[c], seg.chunk_pieces[c + 1]
             _accumulate(H, g, rr, seg.piece_starts[p0:p1] - a, seg.piece_segment[p0:p1], n, E, EJ)
             np.add.at(kept, seg.piece_segment[p0:p1], np.add.reduceat(keep, seg.piece_starts[p0:p1] - a, axis=0))
-            last = seg.ends[(seg.ends >= a) & (seg.ends < a + n)]
+            last = seg.ends[(seg.ends >= max(a, lo)) & (seg.ends < min(a + n, hi))]
             if last.size:
                 end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)
             if stop is not None and stop(0.5 * rr.sum()):
