@@ -490,7 +490,7 @@ def _path(doc) -> ModelPath:
             expected(
                 where,
                 "an object {rule, entries: [{terms, n_terms, log_evidence, objective, "
-                "cv_error, cv_se, source, chosen}]} as symsbl writes it",
+                "cv_error, cv_se, source, chosen[, screened]}]} as symsbl writes it",
                 "another layout",
                 "delete 'path' (it is optional)",
                 raw=True,
