@@ -23,7 +23,7 @@ from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
 from .rows import design_rows, state_guess
 from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
-from .solver import PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
+from .solver import LM_STEPS, PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
 from .structure import free_positions, with_terms
 
 __all__ = ["Engine", "Settings", "residual_fraction", "record_horizon"]
@@ -158,7 +158,7 @@ class Engine:
             noise=self.noise,
             update_noise=screen is None,
             mackay=screen is None,
-            max_iter=60 if screen is None else int(screen),
+            max_iter=LM_STEPS if screen is None else int(screen),
         )
         if self.noise == "auto":
             self.noise = sol.noise.order

@@ -226,7 +226,7 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
         return cross_validate(engine.passes, sol, cv).fold_errors
 
     def add(sol, source: str, fold_errors=None) -> float:
-        key = frozenset(int(k) for k in sol.active)
+        key = _key(sol)
         if key not in seen:
             seen[key] = len(entries)
             entries.append((sol, source, errors(sol) if fold_errors is None else fold_errors))
@@ -243,7 +243,7 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
         screened = _backward(engine, current, alpha, SCREEN_PASSES)
         if screened is None:
             break
-        key = frozenset(int(k) for k in screened.active)
+        key = _key(screened)
         if key in seen:  # a structure fitted already (the evidence's): the path goes on from its own fit
             current, latest = entries[seen[key]][0], float(np.mean(entries[seen[key]][2]))
             continue
@@ -256,6 +256,11 @@ def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
             break
         latest = add(current, "path")
     return entries
+
+
+def _key(sol) -> frozenset[int]:
+    """The structure of a fit: its active coefficients."""
+    return frozenset(int(k) for k in sol.active)
 
 
 def _finished(engine: Engine, screened, alpha: np.ndarray):
@@ -330,7 +335,7 @@ def choose_structure(
     E = np.array([e for _, _, e in entries])
     floor = _noise_floor(engine.passes)
     chosen, reason = rule.choose(sizes, objectives, E, floor=floor)
-    path = _table(engine, entries, sizes, objectives, chosen, reason)
+    path = _table(engine, entries, sizes, objectives, E, chosen, reason)
     sol = entries[chosen][0]
     if entries[chosen][1] == SCREENED:  # chosen on the evidence alone (no structure simulated every fold)
         sol = _finished(engine, sol, alpha) or sol
@@ -357,9 +362,9 @@ def choose_structure(
     return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
 
 
-def _table(engine: Engine, entries: list, sizes: list, objectives: list, chosen: int, reason: str) -> ModelPath:
-    """The model path of the scored ``entries`` (``(solution, source, fold errors)``), simplest first."""
-    E = np.array([e for _, _, e in entries])
+def _table(engine: Engine, entries: list, sizes: list, objectives: list, E, chosen: int, reason: str) -> ModelPath:
+    """The model path of the scored ``entries`` (``(solution, source, fold errors)``, ``E`` their fold errors),
+    simplest first."""
     mean = mean_errors(E)
     best = int(np.argmin(mean))
     return ModelPath(

@@ -420,7 +420,8 @@ class Passes:
             J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)  # (n, ny, ns)
             keep = self.valid[a : a + n]
             if rows is not None:  # the rows before the window were simulated from no state: they do not count
-                inside = (np.arange(a, a + n) >= lo) & (np.arange(a, a + n) < hi)
+                at = np.arange(a, a + n)
+                inside = (at >= lo) & (at < hi)
                 keep = keep & inside[:, None]
                 R, J = np.where(inside[:, None], R, 0.0), np.where(inside[:, None, None], J, 0.0)
             residual[a : a + n] = np.where(keep, R, np.nan)

@@ -25,7 +25,18 @@ from .laplace import Posterior, mackay_fixed_point, posterior
 from .noise import NoiseModel, choose_order, fit_ar
 from .sensitivity import Blocks, Passes, Segments
 
-__all__ = ["Solution", "Iterate", "fit", "lm", "noise_precisions", "pooled", "initial_states", "horizon", "PHI_STOP"]
+__all__ = [
+    "Solution",
+    "Iterate",
+    "fit",
+    "lm",
+    "noise_precisions",
+    "pooled",
+    "initial_states",
+    "horizon",
+    "PHI_STOP",
+    "LM_STEPS",
+]
 
 #: Largest growth of a segment's state-transition matrix before the segments stop lengthening.
 PHI_STOP = 1e4
@@ -71,12 +82,13 @@ class Iterate:
         assert self.blocks is not None  # every step evaluates an iterate before it reads the pass
         return self.blocks
 
-    def evaluated(self, passes: Passes, stop=None) -> tuple[Iterate, int]:
-        """This iterate with its pass made (and the number of passes that took: 0 or 1); ``stop``: see
+    def evaluated(self, passes: Passes, stop=None, rows=None) -> tuple[Iterate, int]:
+        """This iterate with its pass made (and the number of passes that took: 0 or 1); ``stop``, ``rows``: see
         :meth:`~symsbl._refine.sensitivity.Passes.sensitivities`."""
         if self.blocks is not None:
             return self, 0
-        return replace(self, blocks=passes.sensitivities(self.theta, self.X0, self.seg, self.w, self.ar, stop)), 1
+        blocks = passes.sensitivities(self.theta, self.X0, self.seg, self.w, self.ar, stop, rows)
+        return replace(self, blocks=blocks), 1
 
 
 @dataclass
@@ -202,9 +214,13 @@ def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
     return bool(np.isfinite(E_trial) and rho > 1e-4), rho
 
 
+#: Levenberg-Marquardt steps of one round at most.
+LM_STEPS = 60
+
+
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
 def lm(
-    passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = 60, damping: Damping = Damping()
+    passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = LM_STEPS, damping: Damping = Damping()
 ) -> tuple[Iterate, int]:
     """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed noise
     precisions and segments; returns the iterate reached (with its pass) and the number of passes made."""
@@ -259,10 +275,7 @@ def initial_states(
     iterate (with its pass) and the number of passes made. ``rows``: only the segments within these rows are
     fitted (see :meth:`~symsbl._refine.sensitivity.Passes.sensitivities`; the others' blocks are zero)."""
     npar = it.theta.size
-    if rows is None:
-        it, n_pass = it.evaluated(passes)
-    else:
-        it, n_pass = replace(it, blocks=passes.sensitivities(it.theta, it.X0, it.seg, it.w, it.ar, rows=rows)), 1
+    it, n_pass = it.evaluated(passes, rows=rows)
     X0, blocks = it.X0, it.made
     cost = 0.5 * blocks.rr.sum(1)
     shrink = np.ones(len(X0))
@@ -325,7 +338,7 @@ NOISE_ROUNDS = 4
 
 
 def _settle_noise(
-    passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white", max_iter: int = 60
+    passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white", max_iter: int = LM_STEPS
 ):
     """LM at the current noise model, then the noise re-estimated and LM again while it moves (its precisions by
     more than 2 %, an autoregressive coefficient by more than 0.01). ``noise``: "white", an autoregressive
@@ -489,7 +502,7 @@ def _continuation(
     tol: float,
     update_noise: bool,
     noise="white",
-    max_iter: int = 60,
+    max_iter: int = LM_STEPS,
 ):
     """The stages of :func:`fit` from segments of ``length`` samples: ``iterate, length, stages, passes``.
 
@@ -556,7 +569,7 @@ def fit(
     warm: Solution | None = None,
     longest: int | None = None,
     noise="white",
-    max_iter: int = 60,
+    max_iter: int = LM_STEPS,
 ) -> Solution:
     """Continuation in the segment length from ``length0`` up to whole records, then the prior precisions.
 
