@@ -180,6 +180,19 @@ def test_the_validated_choice_takes_a_richer_structure_only_when_every_fold_says
     assert rule.choose([4, 5], [1.0, 2.0], ran_away, floor=0.0040)[0] == 1
 
 
+def test_each_term_a_richer_structure_adds_must_close_its_tenth_of_the_gap():
+    """EMPS's inverse model from its encoder, its path's fold errors as measured (%: 4 terms 3.383, 5 terms 3.150,
+    6 terms 2.906; floor 0): the fifth term closes 6.9 % of the gap and is refused; the sixth with it closes 14.1 %
+    together, more than one term's tenth but less than two terms' 19 % (1 - 0.9^2), and is refused too. A pair
+    that closes 20 % is taken."""
+    rule = SelectionRule()
+    spread = np.array([-0.002, 0.0, 0.002])
+    E = np.array([m + spread * (1 + k) for k, m in enumerate([0.03383, 0.03150, 0.02906])])
+    assert rule.choose([4, 5, 6], [0.0, 1.0, 2.0], E)[0] == 0
+    E[2] = 0.8 * 0.03383 - 1e-4 + spread * 0.1
+    assert rule.choose([4, 5, 6], [0.0, 1.0, 2.0], E)[0] == 2
+
+
 def test_the_library_is_said_to_lack_the_law_only_when_more_terms_still_buy_a_little():
     """:func:`symsbl._refine.path.beyond_library` on fold errors (relative) of a path, noise floor 0.031: an
     exact model whose folds stay above it (10.4 %, as from three accelerometer records at 3 % noise) and which a
