@@ -150,6 +150,12 @@ def test_a_hypersensitive_record_is_validated_over_short_horizons(chaotic, capsy
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="on this chaotic-like record the verdict turns on the estimated velocity's window: a 6-sample half "
+    "window added the cubic; 7 and 8, whose estimates are closer to the truth (1.4 % against 1.7 %), say the "
+    "record cannot tell, and 3 added quadratic damping too",
+)
 def test_the_discrepancy_workflow_finds_the_cubic_missing_from_a_hypersensitive_record():
     """A linear model of the chaotic-like record (x1^3 missing, displacement only): the held-out folds diverge
     whatever the model, so each prediction is scored at the record's measured noise, not at its fold fit's; the

@@ -21,6 +21,8 @@ import math
 
 import numpy as np
 
+from .residuals import innovations, prewhitening
+
 __all__ = [
     "period",
     "period_noise_std",
@@ -28,6 +30,7 @@ __all__ = [
     "noise_std",
     "relative_noise",
     "aperiodic_part",
+    "predicted",
     "BLOCKS",
     "RESOLVED",
 ]
@@ -206,3 +209,23 @@ def aperiodic_part(x: np.ndarray, length: int) -> np.ndarray:
     whole = x[: cycles * length].reshape((cycles, length) + x.shape[1:])
     part = (whole[:-1] - whole.mean(axis=0)) * math.sqrt(cycles / max(cycles - 1, 1))
     return part.reshape(((cycles - 1) * length,) + x.shape[1:])
+
+
+def predicted(x: np.ndarray, tolerance: float) -> bool:
+    """Whether the past of the signal ``x`` predicts it within ``tolerance`` of its spread: its innovations under
+    its own autoregressive filter (:func:`symsbl._data.residuals.prewhitening`) spread less. A noise-free sine or
+    multisine is a function of its past (nothing a loop could feed back into it); a measured input is not.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(4000) / 1000.0
+    >>> sine = np.sin(2 * np.pi * 10 * t)
+    >>> predicted(sine, 1e-9), predicted(sine + 1e-6 * np.random.default_rng(0).standard_normal(t.size), 1e-9)
+    (True, False)
+    """
+    x = np.asarray(x, dtype=float)
+    spread = float(np.std(x))
+    if spread == 0 or not np.all(np.isfinite(x)):
+        return False
+    return float(np.std(innovations(x, prewhitening(x)[1:]))) <= tolerance * spread

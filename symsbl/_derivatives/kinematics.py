@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .._base.errors import DataError, expected
+from .._data.excitation import noise_std
 from .._data.trajectory import Trajectory
 from .weakform import WeakForm
 
@@ -26,6 +27,7 @@ __all__ = [
     "parse_kinematics",
     "kinematic_triples",
     "estimate_velocity",
+    "velocity_noise",
     "latent_states",
     "complete_states",
     "sensor_states",
@@ -156,10 +158,10 @@ def sensor_states(columns: Sequence[str], spec) -> tuple[tuple[str, ...], dict[s
 def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     """The derivative of a sampled position by a smoothing (Savitzky-Golay, quintic) derivative filter.
 
-    The half-window is a quarter of the period of the highest frequency that carries the position's
-    signal (the bandwidth the weak form reads off the spectrum, above the white-noise floor), where
-    the quintic filter's gain is within 0.02 % of the exact derivative's; the noise above that band is
-    attenuated.
+    The half-window is at least a quarter of the period of the highest frequency that carries the velocity's
+    signal (the bandwidth the weak form reads off the spectrum of the position's differences, above their
+    white-noise floor), where the quintic filter's gain is within 0.02 % of the exact derivative's, and wider
+    where that makes the estimate's mean squared error (the band it cuts plus the noise it passes) smaller.
 
     Parameters
     ----------
@@ -179,18 +181,89 @@ def estimate_velocity(t: np.ndarray, x: np.ndarray) -> np.ndarray:
     >>> bool(np.max(np.abs(v[50:-50] - 6 * np.pi * np.cos(6 * np.pi * t[50:-50]))) < 0.05 * 6 * np.pi)
     True
     """
-    t = np.asarray(t, dtype=float)
-    x = np.asarray(x, dtype=float)
-    h = float(t[1] - t[0])
-    window = WeakForm().resolve(t, x[:, None]).window  # about 0.5 / f_hi in samples
-    assert window is not None  # resolve() sets it
-    half = int(max(3, round(0.5 * window)))
-    half = min(half, (len(x) - 1) // 2)
+    h, half = _half_window(t, x)
     if half < 3:
-        return np.gradient(x, h)
+        return np.gradient(np.asarray(x, dtype=float), h)
     from scipy.signal import savgol_filter  # scipy.signal costs ~1 s to import: only when used
 
-    return savgol_filter(x, 2 * half + 1, 5, deriv=1, delta=h, mode="interp")
+    return savgol_filter(np.asarray(x, dtype=float), 2 * half + 1, 5, deriv=1, delta=h, mode="interp")
+
+
+#: Half-windows :func:`estimate_velocity` weighs, from the velocity's band to :data:`MAX_HALF` in geometric steps.
+HALF_WINDOWS = 24
+MAX_HALF = 2000
+#: Samples of the position the weighing reads at most.
+ESTIMATE_SAMPLES = 2**17
+
+
+def _half_window(t: np.ndarray, x: np.ndarray) -> tuple[float, int]:
+    """The sample interval and the half-window of :func:`estimate_velocity` for the position ``x``: from the
+    velocity's band (a quarter period of the frequency below which 99.9 % of the power of the position's
+    differences lies) up, of :data:`HALF_WINDOWS` candidates, the one whose quintic derivative filter makes the
+    least mean squared error: its bias (what it reads unlike the band's filter, less what their noises put in
+    the difference: a wide window reads a fast motion's velocity low) plus the noise through its coefficients
+    (a narrow one passes it), over the first :data:`ESTIMATE_SAMPLES`. The position's own quantile cut a
+    servo axis's velocity band to 0.5 Hz (16 % off the benchmark's recipe; 0.12 % now); the band alone passed
+    a chaotic oscillator's estimate three times the noise of the least error (5.4 % off, 1.4 % now)."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    h, n = float(t[1] - t[0]), x.size
+    top = min(MAX_HALF, (n - 1) // 2)
+    if top < 3:
+        return h, top
+    from scipy.signal import oaconvolve, savgol_coeffs  # scipy.signal costs ~1 s to import: only when used
+
+    # at least the velocity's band, read off the position's differences (their power falls no faster than the
+    # velocity's), the reference of least bias
+    window = WeakForm().resolve(t[1:], np.diff(x)[:, None] / h).window
+    assert window is not None  # resolve() sets it
+    first = min(max(3, int(round(0.5 * window))), top)
+    piece = x[:ESTIMATE_SAMPLES]
+    sigma = noise_std(piece)
+
+    def filtered(half: int) -> tuple[np.ndarray, np.ndarray]:
+        c = savgol_coeffs(2 * half + 1, 5, deriv=1, delta=h, use="dot")
+        return c, oaconvolve(piece, c[::-1], mode="valid")
+
+    c0, v0 = filtered(first)
+    best, chosen = sigma**2 * float(c0 @ c0), first
+    for half in np.unique(np.geomspace(first, top, HALF_WINDOWS).round().astype(int))[1:]:
+        if 2 * half + 1 > piece.size // 4:
+            break
+        c, v = filtered(int(half))
+        cut = half - first  # the reference's samples where this filter has its own
+        d = v - v0[cut : cut + v.size]
+        pad = np.pad(c0, cut)
+        bias = max(float(np.mean(d**2)) - sigma**2 * float((c - pad) @ (c - pad)), 0.0)  # less the noise difference
+        error = bias + sigma**2 * float(c @ c)
+        if error < best:
+            best, chosen = error, int(half)
+    return h, chosen
+
+
+def velocity_noise(t: np.ndarray, x: np.ndarray, v: np.ndarray) -> float:
+    """The white-noise standard deviation of the velocity ``v`` that :func:`estimate_velocity` made of the
+    position ``x``, over ``v``'s spread: the position's noise (:func:`symsbl._data.excitation.noise_std`) times
+    the derivative filter's gain for white noise (the norm of its coefficients).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(8000) / 1000.0
+    >>> x = np.sin(2 * np.pi * 3 * t) + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+    >>> v = estimate_velocity(t, x)
+    >>> round(velocity_noise(t, x, v), 4)  # the noise of v less the clean position's derivative: 0.00045
+    0.0004
+    """
+    h, half = _half_window(t, x)
+    if half < 3:
+        gain = math.sqrt(0.5) / h  # central differences
+    else:
+        from scipy.signal import savgol_coeffs
+
+        gain = float(np.linalg.norm(savgol_coeffs(2 * half + 1, 5, deriv=1, delta=h)))
+    spread = float(np.std(v))
+    return noise_std(np.asarray(x, dtype=float)) * gain / spread if spread > 0 else math.inf
 
 
 def latent_states(names: Sequence[str], measured: Sequence[str], pairs, accelerations=()) -> tuple[str, ...]:

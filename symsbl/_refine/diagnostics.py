@@ -41,7 +41,7 @@ from itertools import combinations_with_replacement
 import numpy as np
 
 from .._base.blas import one_blas_thread
-from .._data.excitation import aperiodic_part, period, relative_noise
+from .._data.excitation import aperiodic_part, period, predicted, relative_noise
 from .._data.residuals import ResidualTest, explained_out_of_sample, ljung_box, residual_test
 from .noise import innovations
 
@@ -91,6 +91,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
     spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
     periodic, R_loop, U_loop, Y_noise = _loop_parts(passes.records, R, U)
+    predicted = _predicted_inputs(passes.records, U)
     out = []
     for c, name in enumerate(engine.measured):
         es: list[np.ndarray] = []
@@ -116,8 +117,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
             continue
         names = engine.model.input_names
         inputs = {m: u[:, k] for k, m in enumerate(names) if np.std(u[:, k]) > 0}
-        # an input that repeats exactly from period to period has nothing a loop could feed back into
-        loop_inputs = {m: loop_u[:, k] for k, m in enumerate(names) if np.std(loop_u[:, k]) > EXACT * np.std(u[:, k])}
+        loop_inputs = _fed(names, u, loop_u, predicted)
         test = residual_test(
             name,
             e,
@@ -125,7 +125,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
             LAGS,
             int(np.count_nonzero(noise.ar[c])) if p else 0,
             family=len(engine.measured) * max(len(names), 1),
-            loop=(loop_e, loop_inputs) if periodic.any() else None,  # else the same arrays: tested as they are
+            loop=(loop_e, loop_inputs),
         )
         between = Y_noise[:, c][np.isfinite(Y_noise[:, c])]
         noise_p = ljung_box(between, LAGS)[1] if between.size > 4 * LAGS else test.noise_p
@@ -197,6 +197,24 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
 #: An input whose change from period to period is below this share of its spread repeats exactly (a record
 #: simulated, or a generator's output logged without noise).
 EXACT = 1e-9
+
+
+def _fed(names, u: np.ndarray, loop_u: np.ndarray, predicted: set[int]) -> dict:
+    """The inputs a loop could feed back into, by name, as the loop test reads them (``loop_u``): not one that
+    repeats exactly from period to period, nor one that its own past predicts (``predicted``)."""
+    return {
+        m: loop_u[:, k]
+        for k, m in enumerate(names)
+        if np.std(loop_u[:, k]) > EXACT * np.std(u[:, k]) and k not in predicted
+    }
+
+
+def _predicted_inputs(records, U: np.ndarray) -> set[int]:
+    """The columns of ``U`` that every record's own past predicts within :data:`EXACT` of their spread (a noise-free
+    sine or multisine: :func:`symsbl._data.excitation.predicted`), judged on each record's first
+    :data:`TEST_SAMPLES`."""
+    spans = list(zip(records.starts, np.minimum(records.lengths, TEST_SAMPLES)))
+    return {k for k in range(U.shape[1]) if all(predicted(U[a : a + m, k], EXACT) for a, m in spans)}
 
 
 def _loop_parts(records, R: np.ndarray, U: np.ndarray):
