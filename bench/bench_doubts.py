@@ -7,7 +7,8 @@ noise on x and v, 0.05 % on F) and under a band-limited random force to 0.3 fs (
 0.5 % on x and v, none on F), identified with a cubic polynomial library in x and v plus F (it holds neither the
 saturation nor x|x|). Power, on records where the doubt is true (``tests/reference_oscillator.py``, a hardening
 oscillator at 1 kHz, 4 s, a 2-30 Hz multisine, the 22-term library of the real-records benchmark): a digital PD
-loop on the previous sample's measurements with a hidden disturbance of 5 % (closed loop), a random force of 2 % of
+loop on the previous sample's measurements with a hidden disturbance of 5 % (closed loop; also with the position
+alone recorded, the velocity estimated from it), a random force of 2 % of
 the input's rms that the record does not hold (process noise: the whiteness doubt), and 2 % white noise on the
 measured force (a noisy input). Per case over the seeds: how often ``identify`` (its defaults) raised each
 doubt (``metadata["refine"]``: ``closed_loop``, ``input_noise``, and a whiteness doubt among ``doubts``), and
@@ -34,7 +35,7 @@ x, v, F = symsbl.symbols("x v F")
 CUBIC = symsbl.polynomial([x, v], 3) + symsbl.inputs([F])
 STAND_IN = Oscillator(saturating)
 
-#: case -> (what is true, a record of a seed, the library, the refinement's options)
+#: case -> (what is true, a record of a seed, the library, the refinement's options[, identify's keywords])
 CASES = {
     "open loop, law outside the library, periodic multisine": (
         "nothing",
@@ -54,6 +55,13 @@ CASES = {
         library(),
         symsbl.RefineOptions(interpolation="hold"),
     ),
+    "digital PD loop, position only": (
+        "closed loop",
+        lambda seed: position_only(closed_loop(HARDENING, 1000 + seed)),
+        library(),
+        symsbl.RefineOptions(interpolation="hold"),
+        {"states": ["x", "v"], "kinematics": {"x": "v"}},
+    ),
     "random force of 2 % hidden (process noise)": (
         "disturbance",
         lambda seed: record(HARDENING, 1000 + seed, process=0.02),
@@ -69,10 +77,15 @@ CASES = {
 }
 
 
+def position_only(record: symsbl.Trajectory) -> symsbl.Trajectory:
+    """``record`` without its velocity column (the velocity is then estimated from the position)."""
+    return symsbl.Trajectory(record.t, record.states[:, :1], record.inputs, ("x",), record.input_names)
+
+
 def main() -> None:
     seeds = int(sys.argv[sys.argv.index("--seeds") + 1]) if "--seeds" in sys.argv else 10
     rows = []
-    for name, (truth, make, terms, options) in CASES.items():
+    for name, (truth, make, terms, options, *keywords) in CASES.items():
         loop = noisy = white = 0
         used: dict = {}
         seconds = []
@@ -81,7 +94,7 @@ def main() -> None:
             start = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", symsbl.RefineWarning)
-                model = symsbl.identify(data, terms, refine_options=options)
+                model = symsbl.identify(data, terms, refine_options=options, **(keywords[0] if keywords else {}))
             seconds.append(time.perf_counter() - start)
             info = model.metadata.get("refine", {})
             loop += bool(info.get("closed_loop"))
