@@ -185,21 +185,22 @@ def identify(
     if options is None:
         return model
     refined = refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
-    estimated = _estimated(trajectories, completed, unmeasured, pairs, columns)
+    estimated = _estimated(trajectories, completed, unmeasured, pairs, columns, present)
     return _reported(model, refined, completed, problem, rvm, rule, estimated=estimated)
 
 
 #: The largest relative noise of a velocity estimated from its position for the equation error on it to be
 #: reported: its errors in variables then bias a linear term by about its square (1e-6), and a sign(v) flips on
-#: a like share of the samples. An encoder's quantisation (EMPS): 5e-6; 1 % noise on a position: 0.006.
+#: about that share of the samples (1e-3 at most). An encoder's quantisation (EMPS): 5e-6; 1 % noise on a
+#: position: 0.006.
 ESTIMATE_NOISE = 1e-3
 
 
-def _estimated(trajectories, completed, unmeasured, pairs, columns) -> bool:
+def _estimated(trajectories, completed, unmeasured, pairs, columns, accelerations) -> bool:
     """Whether a state the records lack was reconstructed too roughly for the equation error on it to be reported:
-    by integration (its drift removed, not known), or by a smoothing derivative noisier than
-    :data:`ESTIMATE_NOISE` (:func:`velocity_noise`)."""
-    derived = {v: x for x, v in pairs if v in unmeasured and x in columns}
+    by integration (its drift removed, not known; a velocity with a measured acceleration in ``accelerations`` is
+    integrated from it), or by a smoothing derivative noisier than :data:`ESTIMATE_NOISE` (:func:`velocity_noise`)."""
+    derived = {v: x for x, v in pairs if v in unmeasured and x in columns and v not in accelerations}
     if any(n not in derived for n in unmeasured):
         return True
     return any(

@@ -214,7 +214,9 @@ def aperiodic_part(x: np.ndarray, length: int) -> np.ndarray:
 def predicted(x: np.ndarray, tolerance: float) -> bool:
     """Whether the past of the signal ``x`` predicts it within ``tolerance`` of its spread: its innovations under
     its own autoregressive filter (:func:`symsbl._data.residuals.prewhitening`) spread less. A noise-free sine or
-    multisine is a function of its past (nothing a loop could feed back into it); a measured input is not.
+    multisine is a function of its past (nothing a loop could feed back into it); a measured input, with its
+    converter's noise, is not. A noise-free random signal through a steep low-pass can be too (an 8th-order
+    Butterworth at 0.01 of the Nyquist rate: 2.5e-11), and a simulated loop on such a reference goes untested.
 
     Examples
     --------

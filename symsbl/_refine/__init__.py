@@ -375,8 +375,9 @@ def _refine_once(
             return rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide)
 
         selected = select and not (adapt and noisy)  # a selection would absorb the input noise's bias
-        if selected and adapt:  # and a loop's, which the start's residual already shows (EMPS: 16 min of CPU)
-            selected = not doubts(residual_tests(engine, sol)).closed_loop
+        tests = residual_tests(engine, sol) if selected and adapt else None
+        if tests is not None and doubts(tests).closed_loop:  # and a loop's, which the start already shows
+            selected = False  # (EMPS from its encoder: 16 min of CPU selecting on a biased evidence)
         if selected:
             if screening:  # a state estimated, not measured, may have hidden a term from the equation error
                 assert library is not None  # refine() screens only with a library
@@ -393,7 +394,8 @@ def _refine_once(
                 engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
             sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             bar.update()
-        tests = residual_tests(engine, sol)  # the loop and the innovations' whiteness: on the structure selected
+        if selected or tests is None:  # the loop and the innovations' whiteness: on the structure selected
+            tests = residual_tests(engine, sol)
         doubted = doubts(tests, noisy)
         if adapt and doubted and not doubted.biased and sol.length > engine.length0:
             # process noise: segments short enough that no disturbance accumulates in them

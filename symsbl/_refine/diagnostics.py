@@ -91,7 +91,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
     spread = np.array([np.std(U[a : a + m], axis=0) for a, m in zip(passes.records.starts, passes.records.lengths)])
     u_scale = (1.0 / np.where(spread > 0, spread, 1.0))[seg.record_of_segment]
     periodic, R_loop, U_loop, Y_noise = _loop_parts(passes.records, R, U)
-    predicted = _predicted_inputs(passes.records, U)
+    foreseen = _predicted_inputs(passes.records, U)
     out = []
     for c, name in enumerate(engine.measured):
         es: list[np.ndarray] = []
@@ -117,7 +117,7 @@ def _tests(engine, sol) -> list[ResidualTest]:
             continue
         names = engine.model.input_names
         inputs = {m: u[:, k] for k, m in enumerate(names) if np.std(u[:, k]) > 0}
-        loop_inputs = _fed(names, u, loop_u, predicted)
+        loop_inputs = _fed(names, u, loop_u, foreseen)
         test = residual_test(
             name,
             e,
