@@ -37,7 +37,7 @@ from .._model import IdentifiedModel
 from .._symbolic.library import Library
 from .candidates import Rebased, extend, prior
 from .candidates import candidates as propose
-from .diagnostics import as_record, doubts, noisy_inputs, residual_tests
+from .diagnostics import as_record, doubts, loop_possible, noisy_inputs, residual_tests
 from .engine import Engine, Settings, record_horizon, residual_fraction
 from .options import MAX_SAMPLES, RefineOptions, as_options
 from .path import choose_structure
@@ -375,7 +375,7 @@ def _refine_once(
             return rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide)
 
         selected = select and not (adapt and noisy)  # a selection would absorb the input noise's bias
-        tests = residual_tests(engine, sol) if selected and adapt else None
+        tests = residual_tests(engine, sol) if selected and adapt and loop_possible(engine) else None
         if tests is not None and doubts(tests).closed_loop:  # and a loop's, which the start already shows
             selected = False  # (EMPS from its encoder: 16 min of CPU selecting on a biased evidence)
         if selected:

@@ -45,7 +45,7 @@ from .._data.excitation import aperiodic_part, period, predicted, relative_noise
 from .._data.residuals import ResidualTest, explained_out_of_sample, ljung_box, residual_test
 from .noise import innovations
 
-__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "Doubts", "INPUT_NOISE"]
+__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "loop_possible", "Doubts", "INPUT_NOISE"]
 
 #: A measured input's relative noise (white-noise level over its spread) above this share of the outputs'
 #: smallest relative noise flags errors in variables.
@@ -197,6 +197,14 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
 #: An input whose change from period to period is below this share of its spread repeats exactly (a record
 #: simulated, or a generator's output logged without noise).
 EXACT = 1e-9
+
+
+def loop_possible(engine) -> bool:
+    """Whether a loop could feed back into an input of ``engine``'s records: one that its own past does not
+    predict (:func:`_predicted_inputs`)."""
+    passes = engine.passes
+    U = passes.UN[: passes.records.n_total]
+    return len(_predicted_inputs(passes.records, U)) < U.shape[1]
 
 
 def _fed(names, u: np.ndarray, loop_u: np.ndarray, predicted: set[int]) -> dict:
