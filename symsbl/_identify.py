@@ -307,7 +307,7 @@ def _check_columns(columns, names, accelerations: dict, algebraic) -> None:
 def _how(name: str, pairs, accelerations: dict, columns) -> str:
     """How the equation error reconstructed a state the records lack."""
     for x, v in pairs:
-        if name == v and x in columns:
+        if name == v and x in columns and v not in accelerations:  # with its acceleration, integrated from it
             return "smoothing derivative"
         if name in (x, v):
             return "integration"

@@ -142,6 +142,16 @@ def test_the_model_file_keeps_the_outputs_and_validates_the_same(tmp_path):
     assert (tmp_path / "again.json").read_text() == path.read_text()
 
 
+def test_a_velocity_the_records_lack_is_said_to_come_from_where_it_was_made():
+    """A position with an accelerometer: the velocity is integrated from the acceleration (and the model says so);
+    a position alone: it is a smoothing derivative of the position."""
+    for keep, how in ((("x", "a"), "v by integration"), (("x",), "v by smoothing derivative")):
+        measured, _ = ro.accelerometer_record(ro.HARDENING, 1, seconds=2.0, keep=keep)
+        kinematics = "x:v:a" if "a" in keep else "x:v"
+        model = _quiet(symsbl.identify, measured, _library(), states=["x", "v"], kinematics=kinematics, refine=False)
+        assert model.metadata["unmeasured_estimate"] == how
+
+
 def test_a_model_file_with_an_output_of_an_unknown_kind_is_refused(tmp_path):
     measured, _ = ro.accelerometer_record(ro.HARDENING, 1, seconds=2.0)
     model = _quiet(symsbl.identify, measured, _library(), states=["x", "v"], kinematics="x:v:a", refine=False)
