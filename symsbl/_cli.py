@@ -99,15 +99,34 @@ def _run_library_file(path: Path, states, inputs):
     return found
 
 
-def _library(spec: str, states, inputs, degree: int):
+#: The degree of a built-in library when ``--degree`` is not given, and the degree above it tried where an
+#: equation's law needs it (see :func:`symsbl._regression.ladder.climb`).
+DEGREE = 3
+#: The richer degree is tried only while its library holds at most this many candidates: the equation error's
+#: cost grows with their square, and a structure of many states already has a large library.
+LADDER_TERMS = 500
+
+
+def _library(spec: str, states, inputs, degree: int | None):
+    """The command's library: a file's, or a built-in one of ``degree``; without a degree, the ladder of
+    :data:`DEGREE` and the degree above it (when that holds at most :data:`LADDER_TERMS` candidates)."""
     from ._symbolic.terms import paper, polynomial
 
-    if degree < 1:
+    if degree is not None and degree < 1:
         raise LibraryError(expected("--degree", "an integer >= 1", degree))
-    if spec == "paper":
-        return paper(states, inputs, degree=degree)
-    if spec == "poly":
-        return polynomial(list(states) + list(inputs), degree)
+    if spec in ("paper", "poly"):
+
+        def build(n: int):
+            return paper(states, inputs, degree=n) if spec == "paper" else polynomial(list(states) + list(inputs), n)
+
+        if degree is not None:
+            return build(degree)
+        first = build(DEGREE)
+        try:
+            richer = build(DEGREE + 1)
+        except LibraryError:  # beyond the size a library may have
+            return first
+        return [first, richer] if len(richer) <= LADDER_TERMS else first
     path = Path(spec)
     if path.suffix != ".py" or not path.is_file():
         raise LibraryError(
@@ -310,7 +329,9 @@ def _print_identified(args, model, records, library) -> None:
         if len(records) == 1
         else f"{len(records)} records ({sum(r.n_samples for r in records)} samples)"
     )
-    print(f"identified from {where} with {len(library)} candidate terms, coefficients by {how}:")
+    steps = model.metadata.get("library", [])
+    candidates = steps[-1]["candidates"] if steps else len(library[0] if isinstance(library, list) else library)
+    print(f"identified from {where} with {candidates} candidate terms, coefficients by {how}:")
     print(model)
     for line in _diagnosis(model):
         print(line)
@@ -355,6 +376,12 @@ def _diagnosis(model) -> list[str]:
     chosen = model.path.chosen if len(model.path) else None
     if chosen is not None and chosen.source != "evidence":
         lines.append(f"structure chosen from the model path ({chosen.source}): {model.path.rule}")
+    for step in model.metadata.get("library", []):
+        grown = ", ".join(f"{n} {a} terms -> {b}" for n, (a, b) in step["equations"].items())
+        lines.append(
+            f"library: the richer one ({step['candidates']} candidates against {step['from']}) holds a law in "
+            f"fewer terms at a higher evidence: {grown}"
+        )
     if refine.get("beyond_library"):
         lines.append(f"library: {refine['beyond_library']}")
     return lines
@@ -529,7 +556,12 @@ def _add_identify_model(p) -> None:
         default="paper",
         help="'paper' (Eq. 21), 'poly', or a .py file defining `library` (its Python runs)",
     )
-    p.add_argument("--degree", type=int, default=3, help="polynomial degree >= 1 (default: 3)")
+    p.add_argument(
+        "--degree",
+        type=int,
+        default=None,
+        help="polynomial degree >= 1 (default: 3, and 4 for an equation whose law needs it)",
+    )
     p.add_argument(
         "--derivative", default="weak", choices=list(DIFFERENTIATORS), help="how targets are built (default: weak)"
     )

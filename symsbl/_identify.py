@@ -15,6 +15,7 @@ measured ``x1``. Columns are normalised only inside the RVM.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from ._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
 from ._refine import refine_or_keep
 from ._refine.options import RefineOptions, requested
 from ._regression.fit import fit_stats, selection_rule
+from ._regression.ladder import as_ladder, climb
 from ._regression.path import validated_equations
 from ._regression.rows import as_trajectories, regression_stats
 from ._regression.rvm import RVM
@@ -38,7 +40,7 @@ __all__ = ["identify"]
 
 def identify(
     data,
-    library: Library,
+    library: Library | Sequence[Library],
     *,
     derivative="weak",
     rvm: RVM | None = None,
@@ -60,8 +62,12 @@ def identify(
         Measured or simulated channels and inputs; several records (a test campaign at several levels, say)
         are fitted jointly, each with its own initial state and noise level. Every state gets an equation;
         kinematic ones (``x1' = x2``) are found, not assumed, unless declared in ``kinematics``.
-    library : Library
-        Candidate terms, e.g. :func:`symsbl.paper`.
+    library : Library or sequence of Library
+        Candidate terms, e.g. :func:`symsbl.paper`; or a ladder of nested libraries, simplest first (the
+        command line's default: the ``paper`` library of degree 3, then 4): each equation takes its
+        equation-error fit on the next library when that holds fewer terms at a higher evidence (the law
+        needs a term only the richer library has), ``metadata["library"]`` records the steps taken, and the
+        refinement draws on the richest library taken. A latent state is identified on the first.
     derivative : str or derivative strategy
         How the targets are built: ``"weak"`` (default; integral form on non-overlapping
         windows), ``"central"``, ``"point"`` (the paper's), ``"savgol"``.
@@ -135,6 +141,7 @@ def identify(
     ['x1', 'x2', 'x1**3', 'F']
     """
     trajectories = as_trajectories(data)
+    ladder = as_ladder(library)
     rule = selection_rule(selection, rvm, equivalence_nats)
     options = requested(refine, refine_options)
     algebraic = _algebraic(outputs)
@@ -152,22 +159,26 @@ def identify(
     if latent:
         asked = _check_latent(latent, accelerations, algebraic, derivative, options)
         fitting = Fitting(options=asked, rule=rule, rvm=rvm, chunk_size=chunk_size, jit=jit)
-        return identify_latent(trajectories, library, names, pairs, latent, fitting)
+        return identify_latent(trajectories, ladder[0], names, pairs, latent, fitting)
     present = {v: a for v, a in accelerations.items() if a in columns}
     completed, unmeasured = complete_states(
         trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
     )
-    problem = regression_stats(
-        completed,
-        library,
-        derivative=derivative,
-        chunk_size=chunk_size,
-        jit=jit,
-        states=names,
-        derivatives=present,
-        outputs=algebraic,
-    )
-    model = fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
+
+    def fit(rung: Library):
+        problem = regression_stats(
+            completed,
+            rung,
+            derivative=derivative,
+            chunk_size=chunk_size,
+            jit=jit,
+            states=names,
+            derivatives=present,
+            outputs=algebraic,
+        )
+        return problem, fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
+
+    problem, model = climb(ladder, fit)
     measured = tuple(n for n in names if n in columns)
     observed = (
         state_outputs(measured)
@@ -184,7 +195,7 @@ def identify(
         )
     if options is None:
         return model
-    refined = refine_or_keep(model, trajectories, library=library, options=options, selection=rule)
+    refined = refine_or_keep(model, trajectories, library=problem.library, options=options, selection=rule)
     estimated = _estimated(trajectories, completed, unmeasured, pairs, columns, present)
     return _reported(model, refined, completed, problem, rvm, rule, estimated=estimated)
 

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from symsbl import Multisine, simulate, systems, time_grid, write_trajectory
+from symsbl import Multisine, Sine, simulate, systems, time_grid, write_trajectory
 from symsbl._cli import main
 
 
@@ -282,3 +282,22 @@ def test_residual_test_findings_are_listed_apart():
     assert _diagnosis(model) == [
         "residual test of v: innovations correlated (Ljung-Box p = 0); depends on tau; feedback to tau"
     ]
+
+
+@pytest.mark.slow
+def test_identify_takes_the_degree_a_law_needs_unless_one_is_given(tmp_path, capsys):
+    """A Bouc-Wen hysteresis of exponent 3 needs terms of degree 4: without --degree the command tries the degree
+    above 3 and says which equation took it; with --degree 3 the library is that one alone."""
+    record = simulate(systems.bouc_wen(), time_grid(3.0, 4096), inputs=Sine(100.0, 10.0)).with_noise(0.005, seed=0)
+    write_trajectory(record, tmp_path / "bw.csv")
+    argv = ["identify", str(tmp_path / "bw.csv"), "--states", "x1,x2,x3", "--inputs", "F", "--no-refine"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert "with 142 candidate terms" in out
+    assert "library: the richer one (142 candidates against 76) holds a law in fewer terms" in out
+    assert "x3 17 terms -> 3" in out
+    law = r"x3' = 6\d{3}\(\d+\) x2 \+ 1\.5\d*\(\S+\) x2 x3\^2 \|x3\| - 1\.5\d*\(\S+\) x3\^3 \|x2\|$"
+    assert re.search(law, out, re.M)
+    code, out, err = run([*argv, "--degree", "3"], capsys)
+    assert code == 0, err
+    assert "with 76 candidate terms" in out and "richer" not in out

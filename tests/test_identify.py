@@ -240,3 +240,56 @@ def test_the_demo_identifies_every_system_exactly_and_at_the_noise_floor(name):
     r = run_case(name)
     assert r.truth.exact_support, (name, r.truth.missing, r.truth.spurious)
     assert max(r.heldout.nrmse.values()) < 0.0045, r.heldout.nrmse
+
+
+@pytest.fixture(scope="module")
+def hysteresis_of_exponent_3():
+    """A Bouc-Wen oscillator of exponent 3 under a 10 Hz sine (its law ``z' = A v - a |v| z^3 - b v |z|^3`` needs
+    terms of degree 4), 0.5 % noise, and the ladder of the paper's library at degrees 3 and 4."""
+    record = simulate(systems.bouc_wen(), time_grid(3.0, 4096), inputs=Sine(100.0, 10.0)).with_noise(0.005, seed=0)
+    x1, x2, x3, F = symbols("x1 x2 x3 F")
+    return record, [paper([x1, x2, x3], [F], degree=d) for d in (3, 4)]
+
+
+@pytest.mark.slow
+def test_a_ladder_of_libraries_reaches_the_degree_a_hysteresis_law_needs(hysteresis_of_exponent_3):
+    """At degree 3 the hysteresis law is spread over 17 terms; the ladder takes x3's fit at degree 4, the true
+    three terms within 1 % of their values, and keeps the other equations' fits at degree 3."""
+    record, ladder = hysteresis_of_exponent_3
+    first = identify(record, ladder[0], refine=False)
+    assert len(first.equation("x3").terms) >= 10
+    model = identify(record, ladder, refine=False)
+    truth = {"x2": 6800.0, "x2*x3**2*Abs(x3)": 1.5, "x3**3*Abs(x2)": -1.5}
+    assert sorted(model.equation("x3").names) == sorted(truth)
+    for name, value in truth.items():
+        assert model.equation("x3").coef(name) == pytest.approx(value, rel=0.01)
+    step = {
+        "candidates": len(ladder[1]),
+        "from": len(ladder[0]),
+        "equations": {"x3": [len(first.equation("x3").terms), 3]},
+    }
+    assert model.metadata["library"] == [step]
+    assert str(model.equation("x2")) == str(first.equation("x2"))
+
+
+def test_a_ladder_keeps_the_first_library_where_it_holds_the_law():
+    """A Duffing oscillator's cubic is in the degree-3 library: the ladder's model is that library's, unchanged."""
+    train = simulate(systems.duffing(), time_grid(1.0, 8192), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    x1, x2, F = symbols("x1 x2 F")
+    ladder = [paper([x1, x2], [F], degree=d) for d in (3, 4)]
+    alone = identify(train, ladder[0], refine=False)
+    model = identify(train, ladder, refine=False)
+    for eq, reference in zip(model.equations, alone.equations):
+        assert eq.names == reference.names
+        np.testing.assert_array_equal(eq.coefs, reference.coefs)
+    assert "library" not in model.metadata
+
+
+def test_a_ladder_is_refused_unless_each_library_holds_the_one_before():
+    x1, x2, F = symbols("x1 x2 F")
+    train = simulate(systems.duffing(), time_grid(0.1, 2048), inputs=Sine(100.0, 10.0))
+    with pytest.raises(LibraryError, match=r"^library\[1\]: expected every term .*of library\[0\]") as error:
+        identify(train, [paper([x1, x2], [F], degree=4), paper([x1, x2], [F], degree=3)], refine=False)
+    assert "\n" not in str(error.value)
+    with pytest.raises(LibraryError, match="^library: expected a Library, or a sequence of nested Library"):
+        identify(train, ["x1", "x2"], refine=False)

@@ -1,0 +1,87 @@
+"""A ladder of libraries: each equation from the simplest library that holds its law.
+
+A library of one polynomial degree may lack the law: a Bouc-Wen hysteresis of exponent 3 needs ``|v| z^3`` and
+``v |z|^3``, terms of degree 4, and a degree-3 library spreads it over many small terms (17 where the law has 3).
+A ladder is a sequence of nested libraries, simplest first. Each equation's equation-error fit on the next library
+replaces its fit on the current one when it is better on both counts, fewer terms and a higher evidence (so no
+threshold decides), and the climb goes on while some equation takes a step. An equation whose law the simpler
+library holds keeps its fit there: a richer library only adds terms to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+from .._base.errors import LibraryError, expected
+from .._symbolic.library import Library
+
+__all__ = ["as_ladder", "climb"]
+
+
+def as_ladder(library) -> tuple[Library, ...]:
+    """``library`` as a ladder: one :class:`~symsbl.Library`, or a sequence of them each holding every term of
+    the one before."""
+    ladder = (library,) if isinstance(library, Library) else tuple(library) if isinstance(library, Sequence) else ()
+    if not ladder or not all(isinstance(rung, Library) for rung in ladder):
+        raise LibraryError(
+            expected(
+                "library",
+                "a Library, or a sequence of nested Library objects (simplest first)",
+                type(library).__name__,
+                raw=True,
+            )
+        )
+    for k, (simpler, richer) in enumerate(zip(ladder, ladder[1:])):
+        missing = [n for n in simpler.names if n not in richer]
+        if missing or simpler.variable_names != richer.variable_names:
+            got = f"terms {missing[:3]} missing" if missing else f"variables {richer.variable_names}"
+            raise LibraryError(
+                expected(
+                    f"library[{k + 1}]",
+                    f"every term and the variables {simpler.variable_names} of library[{k}]",
+                    got,
+                    "order the libraries simplest first, each built on the same variables",
+                    raw=True,
+                )
+            )
+    return ladder
+
+
+def _better(richer, simpler) -> bool:
+    """Whether an equation's fit on a richer library beats its fit on a simpler one on both counts."""
+    return len(richer.terms) < len(simpler.terms) and richer.log_evidence > simpler.log_evidence
+
+
+def climb(ladder: Sequence[Library], fit: Callable) -> tuple:
+    """``(problem, model)`` of the ladder's climb: ``fit(library)`` gives the equation-error ``(problem,
+    model)`` on one library; each equation takes its fit on the next library when it is better there
+    (:func:`_better`), and the returned problem is that of the richest library an equation took. The model's
+    ``metadata["library"]`` records each step taken: the library's size and, per equation, its terms before
+    and after."""
+    problem, model = fit(ladder[0])
+    steps = []
+    for library in ladder[1:]:
+        trial, richer = fit(library)
+        fitted = {eq.lhs: eq for eq in richer.equations if not eq.fixed}
+        taken = {
+            eq.lhs: fitted[eq.lhs]
+            for eq in model.equations
+            if eq.lhs in fitted and not eq.fixed and _better(fitted[eq.lhs], eq)
+        }
+        if not taken:
+            break
+        steps.append(
+            {
+                "candidates": len(library),
+                "from": len(problem.library),
+                "equations": {n: [len(model.equation(n).terms), len(eq.terms)] for n, eq in taken.items()},
+            }
+        )
+        equations = tuple(taken.get(eq.lhs, eq) for eq in model.equations)
+        metadata = dict(model.metadata, n_candidates=len(library))
+        model = dataclasses.replace(model, equations=equations, metadata=metadata)
+        problem = trial
+    if steps:
+        model = dataclasses.replace(model, metadata=dict(model.metadata, library=steps))
+    return problem, model
