@@ -380,7 +380,7 @@ def _diagnosis(model) -> list[str]:
         grown = ", ".join(f"{n} {a} terms -> {b}" for n, (a, b) in step["equations"].items())
         lines.append(
             f"library: the richer one ({step['candidates']} candidates against {step['from']}) holds a law in "
-            f"fewer terms at a higher evidence: {grown}"
+            f"fewer terms at a decisively higher evidence: {grown}"
         )
     if refine.get("beyond_library"):
         lines.append(f"library: {refine['beyond_library']}")

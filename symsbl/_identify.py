@@ -65,9 +65,10 @@ def identify(
     library : Library or sequence of Library
         Candidate terms, e.g. :func:`symsbl.paper`; or a ladder of nested libraries, simplest first (the
         command line's default: the ``paper`` library of degree 3, then 4): each equation takes its
-        equation-error fit on the next library when that holds fewer terms at a higher evidence (the law
-        needs a term only the richer library has), ``metadata["library"]`` records the steps taken, and the
-        refinement draws on the richest library taken. A latent state is identified on the first.
+        equation-error fit on the next library when that holds fewer terms at a higher evidence by the
+        selection rule's ``margin_nats`` (the law needs a term only the richer library has);
+        ``metadata["library"]`` records the steps taken, and the refinement draws on the richest library
+        taken. A latent state is identified on the first.
     derivative : str or derivative strategy
         How the targets are built: ``"weak"`` (default; integral form on non-overlapping
         windows), ``"central"``, ``"point"`` (the paper's), ``"savgol"``.
@@ -178,7 +179,7 @@ def identify(
         )
         return problem, fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
 
-    problem, model = climb(ladder, fit)
+    problem, model = climb(ladder, fit, rule)
     measured = tuple(n for n in names if n in columns)
     observed = (
         state_outputs(measured)
