@@ -329,9 +329,11 @@ def _print_identified(args, model, records, library) -> None:
         if len(records) == 1
         else f"{len(records)} records ({sum(r.n_samples for r in records)} samples)"
     )
-    steps = model.metadata.get("library", [])
-    candidates = steps[-1]["candidates"] if steps else len(library[0] if isinstance(library, list) else library)
-    print(f"identified from {where} with {candidates} candidate terms, coefficients by {how}:")
+    first = len(library[0] if isinstance(library, list) else library)
+    # an equation the ladder moved chose among the richer library's candidates
+    richer = ", ".join(f"{s['candidates']} for {', '.join(s['equations'])}" for s in model.metadata.get("library", []))
+    candidates = f"{first} candidate terms" + (f" ({richer})" if richer else "")
+    print(f"identified from {where} with {candidates}, coefficients by {how}:")
     print(model)
     for line in _diagnosis(model):
         print(line)
@@ -560,7 +562,8 @@ def _add_identify_model(p) -> None:
         "--degree",
         type=int,
         default=None,
-        help="polynomial degree >= 1 (default: 3, and 4 for an equation whose law needs it)",
+        help="polynomial degree >= 1 (default: 3, and 4 for an equation whose law needs it, where the degree-4 "
+        "library holds at most 500 candidates and the records more rows)",
     )
     p.add_argument(
         "--derivative", default="weak", choices=list(DIFFERENTIATORS), help="how targets are built (default: weak)"

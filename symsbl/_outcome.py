@@ -36,7 +36,7 @@ _INTERRUPTED = (130, "interrupted")
 
 #: What takes less memory, by command.
 _LIGHTER = {
-    "identify": "use a shorter record, fewer candidate terms or a lower --degree",
+    "identify": "use a shorter record, fewer candidate terms or a lower --degree (without it, 4 is tried beside 3)",
     "discrepancy": "use a shorter record or --no-library",
     "validate": "use a shorter record or fewer --band draws",
     "simulate": "use a shorter record or fewer --band draws",

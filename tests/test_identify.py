@@ -1,10 +1,8 @@
 """Identification of the paper's five systems against their true equations."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from electronic_duffing import Oscillator, saturating, training
 from helpers import exactly
 
 from symsbl import (
@@ -292,9 +290,6 @@ def test_a_ladder_keeps_the_first_library_where_it_holds_the_law():
 def test_a_ladder_stays_on_the_first_library_when_the_richer_fit_is_not_decisively_better():
     """A saturating stiffness that neither library holds, its velocity estimated: the degree-4 fit holds one term
     fewer at about the same evidence (a rival approximation, not the law), and the first library stays."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    from electronic_duffing import Oscillator, saturating, training
-
     record = training(Oscillator(saturating))
     position = Trajectory(record.t, record.states[:, :1], record.inputs, ("x",), ("F",))
     x, v, F = symbols("x v F")
@@ -308,11 +303,26 @@ def test_a_ladder_stays_on_the_first_library_when_the_richer_fit_is_not_decisive
     assert model.equation("v").names == first.names
 
 
+def test_a_ladder_stops_below_a_library_the_record_is_too_short_for():
+    """46 regression rows fit the degree-3 library (34 candidates) but not degree 4 (50): the ladder keeps degree 3
+    and its model, where the richer library alone is refused."""
+    record = simulate(systems.duffing(), time_grid(0.15, 1229), inputs=Sine(100.0, 10.0)).with_noise(0.004, seed=0)
+    x1, x2, F = symbols("x1 x2 F")
+    ladder = [paper([x1, x2], [F], degree=d) for d in (3, 4)]
+    with pytest.raises(DataError, match="more regression rows than candidate terms"):
+        identify(record, ladder[1], refine=False)
+    alone, model = (identify(record, library, refine=False) for library in (ladder[0], ladder))
+    assert [eq.names for eq in model.equations] == [eq.names for eq in alone.equations]
+    assert "library" not in model.metadata
+
+
 def test_a_ladder_is_refused_unless_each_library_holds_the_one_before():
     x1, x2, F = symbols("x1 x2 F")
     train = simulate(systems.duffing(), time_grid(0.1, 2048), inputs=Sine(100.0, 10.0))
     with pytest.raises(LibraryError, match=r"^library\[1\]: expected every term .*of library\[0\]") as error:
         identify(train, [paper([x1, x2], [F], degree=4), paper([x1, x2], [F], degree=3)], refine=False)
     assert "\n" not in str(error.value)
-    with pytest.raises(LibraryError, match="^library: expected a Library, or a sequence of nested Library"):
+    with pytest.raises(LibraryError, match="^library: expected a Library, .*received a list holding str; build"):
         identify(train, ["x1", "x2"], refine=False)
+    with pytest.raises(LibraryError, match="received an empty list"):
+        identify(train, [], refine=False)
