@@ -271,10 +271,8 @@ def _finished(engine: Engine, screened, alpha: np.ndarray):
 
 
 #: Samples the path fits and cross-validates at most: longer data (the windows of a long record) contribute each
-#: its first stretch, and a structure other than the evidence's is then refitted on every sample. Five folds of
-#: 6554 samples rank the structures as the whole record does (the demo's table, a 57344-sample stand-in's choice),
-#: and a structure earns its terms by what they buy, not by a record's length.
-PATH_SAMPLES = 2**15
+#: its first stretch, and a structure other than the evidence's is then refitted on every sample.
+PATH_SAMPLES = 2**17
 
 
 def _shortened(records, most: int) -> list:
