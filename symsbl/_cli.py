@@ -330,9 +330,11 @@ def _print_identified(args, model, records, library) -> None:
         else f"{len(records)} records ({sum(r.n_samples for r in records)} samples)"
     )
     first = len(library[0] if isinstance(library, list) else library)
-    # an equation the ladder moved chose among the richer library's candidates
-    richer = ", ".join(f"{s['candidates']} for {', '.join(s['equations'])}" for s in model.metadata.get("library", []))
-    candidates = f"{first} candidate terms" + (f" ({richer})" if richer else "")
+    steps = model.metadata.get("library", [])
+    # an equation the ladder moved chose among the richer library's candidates, the refinement among them all
+    richer = "; ".join(f"{s['candidates']} for {', '.join(s['equations'])}" for s in steps)
+    refined = f"; the refinement's {steps[-1]['candidates']}" if steps and model.fit.value == "output-error" else ""
+    candidates = f"{first} candidate terms" + (f" ({richer}{refined})" if richer else "")
     print(f"identified from {where} with {candidates}, coefficients by {how}:")
     print(model)
     for line in _diagnosis(model):
@@ -379,11 +381,14 @@ def _diagnosis(model) -> list[str]:
     if chosen is not None and chosen.source != "evidence":
         lines.append(f"structure chosen from the model path ({chosen.source}): {model.path.rule}")
     for step in model.metadata.get("library", []):
-        grown = ", ".join(f"{n} {a} terms -> {b}" for n, (a, b) in step["equations"].items())
+        grown = ", ".join(f"{n} {a} terms -> {b}" for n, (a, b, *_) in step["equations"].items())
         lines.append(
             f"library: the richer one ({step['candidates']} candidates against {step['from']}) holds a law in "
             f"fewer terms at a decisively higher evidence: {grown}"
         )
+    refused = model.metadata.get("library_refused")
+    if refused:
+        lines.append(f"library: the richer one ({refused['candidates']} candidates) was not tried: {refused['why']}")
     if refine.get("beyond_library"):
         lines.append(f"library: {refine['beyond_library']}")
     return lines
@@ -563,7 +568,7 @@ def _add_identify_model(p) -> None:
         type=int,
         default=None,
         help="polynomial degree >= 1 (default: 3, and 4 for an equation whose law needs it, where the degree-4 "
-        "library holds at most 500 candidates and the records more rows)",
+        "library holds at most 500 candidates and the records more regression rows than its candidates)",
     )
     p.add_argument(
         "--derivative", default="weak", choices=list(DIFFERENTIATORS), help="how targets are built (default: weak)"

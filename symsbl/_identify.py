@@ -166,11 +166,11 @@ def identify(
         trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
     )
 
-    def fit(rung: Library):
+    def fit(rung: Library, like=None):
         problem = regression_stats(
             completed,
             rung,
-            derivative=derivative,
+            derivative=derivative if like is None else like.derivative,
             chunk_size=chunk_size,
             jit=jit,
             states=names,

@@ -268,7 +268,7 @@ def test_a_ladder_of_libraries_reaches_the_degree_a_hysteresis_law_needs(hystere
     step = {
         "candidates": len(ladder[1]),
         "from": len(ladder[0]),
-        "equations": {"x3": [len(first.equation("x3").terms), 3]},
+        "equations": {"x3": [len(first.equation("x3").terms), 3, len(ladder[0])]},
     }
     assert model.metadata["library"] == [step]
     assert str(model.equation("x2")) == str(first.equation("x2"))
@@ -314,6 +314,8 @@ def test_a_ladder_stops_below_a_library_the_record_is_too_short_for():
     alone, model = (identify(record, library, refine=False) for library in (ladder[0], ladder))
     assert [eq.names for eq in model.equations] == [eq.names for eq in alone.equations]
     assert "library" not in model.metadata
+    assert model.metadata["library_refused"]["candidates"] == len(ladder[1])
+    assert model.metadata["library_refused"]["why"].startswith("rows: expected more regression rows")
 
 
 def test_a_ladder_is_refused_unless_each_library_holds_the_one_before():
@@ -322,7 +324,9 @@ def test_a_ladder_is_refused_unless_each_library_holds_the_one_before():
     with pytest.raises(LibraryError, match=r"^library\[1\]: expected every term .*of library\[0\]") as error:
         identify(train, [paper([x1, x2], [F], degree=4), paper([x1, x2], [F], degree=3)], refine=False)
     assert "\n" not in str(error.value)
-    with pytest.raises(LibraryError, match="^library: expected a Library, .*received a list holding str; build"):
-        identify(train, ["x1", "x2"], refine=False)
+    with pytest.raises(LibraryError, match=r"^library: expected a Library, .*received a list holding str at \[1\]; b"):
+        identify(train, [paper([x1, x2], [F], degree=3), "x2"], refine=False)
+    with pytest.raises(LibraryError, match="received str 'paper'; build each with symsbl.paper"):
+        identify(train, "paper", refine=False)
     with pytest.raises(LibraryError, match="received an empty list"):
         identify(train, [], refine=False)

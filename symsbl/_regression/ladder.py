@@ -24,24 +24,27 @@ from .._symbolic.library import Library
 __all__ = ["as_ladder", "climb"]
 
 
+def _received(library) -> str:
+    """What ``identify`` received in place of a ladder, for its error."""
+    if isinstance(library, (str, bytes)) or not isinstance(library, Sequence):
+        return f"{type(library).__name__} {library!r}" if isinstance(library, (str, bytes)) else type(library).__name__
+    if not library:
+        return f"an empty {type(library).__name__}"
+    wrong = {k: type(rung).__name__ for k, rung in enumerate(library) if not isinstance(rung, Library)}
+    return f"a {type(library).__name__} holding " + ", ".join(f"{name} at [{k}]" for k, name in wrong.items())
+
+
 def as_ladder(library) -> tuple[Library, ...]:
     """``library`` as a ladder: one :class:`~symsbl.Library`, or a sequence of them each holding every term of
     the one before."""
-    ladder = (library,) if isinstance(library, Library) else tuple(library) if isinstance(library, Sequence) else ()
+    many = isinstance(library, Sequence) and not isinstance(library, (str, bytes))
+    ladder = (library,) if isinstance(library, Library) else tuple(library) if many else ()
     if not ladder or not all(isinstance(rung, Library) for rung in ladder):
-        held = sorted({type(rung).__name__ for rung in ladder}) if isinstance(library, Sequence) else []
-        got = (
-            type(library).__name__
-            if not isinstance(library, Sequence)
-            else f"a {type(library).__name__} holding {', '.join(held)}"
-            if held
-            else f"an empty {type(library).__name__}"
-        )
         raise LibraryError(
             expected(
                 "library",
                 "a Library, or a sequence of nested Library objects (simplest first)",
-                got,
+                _received(library),
                 "build each with symsbl.paper, symsbl.polynomial or symsbl.custom",
                 raw=True,
             )
@@ -63,9 +66,9 @@ def as_ladder(library) -> tuple[Library, ...]:
 
 
 def _better(richer, current, held: Library, rule: SelectionRule) -> bool:
-    """Whether an equation's fit on a richer library beats its ``current`` fit (on the library ``held``) on both
-    counts, with a term ``held`` lacks (a subset of the current terms is the support search's artefact, not a
-    law)."""
+    """Whether an equation's fit on a richer library beats its ``current`` fit (on the library ``held``, both on
+    the same regression rows) on both counts, with a term ``held`` lacks (a subset of the current terms is the
+    support search's artefact, not a law)."""
     return (
         len(richer.terms) < len(current.terms)
         and rule.decisive(richer.log_evidence - current.log_evidence)
@@ -73,41 +76,72 @@ def _better(richer, current, held: Library, rule: SelectionRule) -> bool:
     )
 
 
+class _Current:
+    """Each equation's current fit, the library it came from and the regression rows it was fitted on (the
+    resolved derivative), with fits of those libraries on another library's rows made once each."""
+
+    def __init__(self, ladder, problem, model):
+        self.model = model
+        self.held = {eq.lhs: ladder[0] for eq in model.equations}
+        self.rows = {eq.lhs: problem.derivative for eq in model.equations}
+        self.cache: dict = {}
+
+    def on_rows_of(self, trial, fit: Callable, lhs: str):
+        """The current fit of ``lhs``, refitted on the rows of the problem ``trial`` when its own differ."""
+        if self.rows[lhs] == trial.derivative:
+            return self.model.equation(lhs)
+        key = (id(self.held[lhs]), id(trial))
+        if key not in self.cache:
+            self.cache[key] = {eq.lhs: eq for eq in fit(self.held[lhs], like=trial)[1].equations}
+        return self.cache[key][lhs]
+
+    def take(self, taken: dict, library: Library, trial) -> None:
+        self.held.update(dict.fromkeys(taken, library))
+        self.rows.update(dict.fromkeys(taken, trial.derivative))
+        equations = tuple(taken.get(eq.lhs, eq) for eq in self.model.equations)
+        metadata = dict(self.model.metadata, n_candidates=len(library))
+        self.model = dataclasses.replace(self.model, equations=equations, metadata=metadata)
+
+
 def climb(ladder: Sequence[Library], fit: Callable, rule: SelectionRule) -> tuple:
-    """``(problem, model)`` of the ladder's climb: ``fit(library)`` gives the equation-error ``(problem,
-    model)`` on one library; each equation takes its fit on each richer library in turn when it is better there by
-    ``rule`` (:func:`_better`), and the returned problem is that of the richest library an equation took. A library
-    the records cannot fit (fewer regression rows than candidates) ends the climb, as every richer one is larger.
-    The model's ``metadata["library"]`` records each step taken: the library's size and, per equation, its terms
-    before and after."""
+    """``(problem, model)`` of the ladder's climb: ``fit(library, like=None)`` gives the equation-error ``(problem,
+    model)`` on one library (on the regression rows of the problem ``like`` when given: a richer library may
+    resolve a shorter weak-form window, and evidences compare on the same rows only); each equation takes its fit
+    on each richer library in turn when it is better there by ``rule`` (:func:`_better`), and the returned problem
+    is that of the richest library an equation took. A library the records cannot fit (fewer regression rows than
+    candidates, values past a double's range) ends the climb, as every richer one holds it. The model's
+    ``metadata["library"]`` records each step taken (the library's size and, per equation, its terms before and
+    after and the size of the library it came from), ``metadata["library_refused"]`` the library that ended
+    the climb and why."""
     problem, model = fit(ladder[0])
-    held = {eq.lhs: ladder[0] for eq in model.equations}
-    steps = []
+    current = _Current(ladder, problem, model)
+    steps: list[dict] = []
+    refused = None
     for library in ladder[1:]:
         try:
             trial, richer = fit(library)
-        except DataError:
+        except DataError as error:
+            refused = {"candidates": len(library), "why": str(error)}
             break
         fitted = {eq.lhs: eq for eq in richer.equations if not eq.fixed}
         taken = {
             eq.lhs: fitted[eq.lhs]
-            for eq in model.equations
-            if eq.lhs in fitted and not eq.fixed and _better(fitted[eq.lhs], eq, held[eq.lhs], rule)
+            for eq in current.model.equations
+            if eq.lhs in fitted
+            and not eq.fixed
+            and len(fitted[eq.lhs].terms) < len(eq.terms)
+            and _better(fitted[eq.lhs], current.on_rows_of(trial, fit, eq.lhs), current.held[eq.lhs], rule)
         }
         if not taken:
             continue
-        steps.append(
-            {
-                "candidates": len(library),
-                "from": len(problem.library),
-                "equations": {n: [len(model.equation(n).terms), len(eq.terms)] for n, eq in taken.items()},
-            }
-        )
-        held.update(dict.fromkeys(taken, library))
-        equations = tuple(taken.get(eq.lhs, eq) for eq in model.equations)
-        metadata = dict(model.metadata, n_candidates=len(library))
-        model = dataclasses.replace(model, equations=equations, metadata=metadata)
+        before = {
+            n: [len(current.model.equation(n).terms), len(eq.terms), len(current.held[n])] for n, eq in taken.items()
+        }
+        steps.append({"candidates": len(library), "from": len(problem.library), "equations": before})
+        current.take(taken, library, trial)
         problem = trial
-    if steps:
-        model = dataclasses.replace(model, metadata=dict(model.metadata, library=steps))
-    return problem, model
+    extra: dict = {"library": steps} if steps else {}
+    if refused is not None:
+        extra["library_refused"] = refused
+    model = current.model
+    return problem, dataclasses.replace(model, metadata=dict(model.metadata, **extra)) if extra else model
