@@ -210,6 +210,45 @@ def test_the_model_path_of_long_data_scores_first_stretches_and_keeps_a_fit_on_e
         assert np.all(np.abs(a.coefs - b.coefs) < 0.05 * stds), (a.coefs, b.coefs, stds)
 
 
+def test_a_structure_that_runs_away_on_every_sample_leaves_the_evidences(monkeypatch):
+    """Data longer than PATH_SAMPLES: a structure chosen on the first stretches and refitted on every sample is
+    dropped when that refit runs away, and the evidence's structure (fitted on every sample) is kept, the path
+    saying so."""
+    from symsbl._refine import path
+
+    train, library = _duffing_case(2.0, 4096)
+    start = symsbl.identify(train, library, refine=False)
+    monkeypatch.setattr(path, "PATH_SAMPLES", train.n_samples // 2)
+    calls = []
+
+    def runs_away(engine, sol, records, measured, cost):
+        calls.append([r.n_samples for r in records])
+        return None
+
+    evidence = symsbl.refine(start, train, library=library, selection=symsbl.SelectionRule(model_choice="evidence"))
+    monkeypatch.setattr(path, "_refitted", runs_away)
+    # a rule that takes the path's simplest structure, which is not the evidence's
+    monkeypatch.setattr(symsbl.SelectionRule, "choose", lambda self, sizes, *_, **__: (int(np.argmin(sizes)), "least"))
+    model = symsbl.refine(start, train, library=library)
+    assert calls == [[train.n_samples]]
+    assert model.path.chosen.source == "evidence"
+    assert "ran away on every sample" in model.path.rule
+    assert [eq.names for eq in model.equations] == [eq.names for eq in evidence.equations]
+
+
+def test_the_model_path_scores_records_a_little_past_its_bound_whole():
+    """Up to PATH_MARGIN times PATH_SAMPLES the records are scored whole (1 s at 32768 Hz is 32769 samples: cut
+    by one sample, its chosen structure would be refitted whole for nothing); past it, first stretches."""
+    from symsbl._refine.path import PATH_MARGIN, PATH_SAMPLES, _shortened
+
+    train, _ = _duffing_case(1.0, 32768)
+    assert train.n_samples == PATH_SAMPLES + 1
+    assert _shortened([train], PATH_SAMPLES) == [train]
+    longer = int(PATH_MARGIN * PATH_SAMPLES) + 2
+    cut = _shortened([train, train.slice(0, longer - train.n_samples)], PATH_SAMPLES)
+    assert sum(r.n_samples for r in cut) <= PATH_SAMPLES + 1
+
+
 def test_the_residual_tests_of_long_data_read_each_segments_first_stretch():
     """Up to TEST_SAMPLES every segment is tested whole; past it, each segment's first stretch, in proportion to
     its length and long enough for the tests' lags, about TEST_SAMPLES samples in all."""
