@@ -294,15 +294,8 @@ def _refitted(engine: Engine, sol, records, measured, cost: float):
     chosen = to_model(engine, sol, {})
     full = Engine(chosen, records, measured, engine.settings, {})
     full.longest = engine.longest
-    theta0 = np.zeros(len(full.positions))
-    theta0[full.base] = full.param.theta0[full.base]
-    try:
-        refit = full.fit(full.base, theta0, prior(full))
-    except (SimulationError, np.linalg.LinAlgError):
-        return None
-    if not np.isfinite(refit.posterior.log_evidence):
-        return None
-    return full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost)
+    refit = _fit(full, full.base, full.param.theta0, prior(full))
+    return None if refit is None else (full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost))
 
 
 def choose_structure(
@@ -349,17 +342,17 @@ def choose_structure(
     if entries[chosen][1] == SCREENED:  # chosen on the evidence alone (no structure simulated every fold)
         sol = _finished(engine, sol, alpha) or sol
     evidence = next((k for k, entry in enumerate(entries) if entry[1] == "evidence"), None)
-    whole = None
+    fitted = engine  # the reported solution's engine; the path's entries are the scored engine's
     if chosen != evidence:
         sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
         if any(a.n_samples != b.n_samples for a, b in zip(scored, records)):
             cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
             whole = _refitted(engine, sol, records, measured, cost)
-            if whole is None and evidence is not None:  # the evidence's structure, fitted on every sample, stays
+            if whole is not None:
+                fitted, sol = whole
+            elif evidence is not None:  # the evidence's structure, fitted on every sample, stays
                 chosen, reason = evidence, f"{reason}; the structure so chosen ran away on every sample"
-    path = _table(engine, entries, sizes, objectives, E, chosen, reason)  # the scored engine names the entries
-    if chosen != evidence and whole is not None:
-        engine, sol = whole
+    path = _table(engine, entries, sizes, objectives, E, chosen, reason)
     if chosen == evidence:
         meta = dict(refined.metadata.get("refine", {}), noise_floor=floor)
         meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
@@ -370,13 +363,13 @@ def choose_structure(
         stages=sol.stages,
         passes=int(sol.n_pass),
         log_evidence=float(sol.posterior.log_evidence),
-        effective_fraction=round(residual_fraction(engine, sol), 4),
-        residual=[as_record(t) for t in residual_tests(engine, sol)],
+        effective_fraction=round(residual_fraction(fitted, sol), 4),
+        residual=[as_record(t) for t in residual_tests(fitted, sol)],
         chosen_by=reason,
         noise_floor=floor,
     )
     meta["beyond_library"] = beyond_library(sizes, E, chosen, floor, rule.min_gain, _follows(meta))
-    return dataclasses.replace(to_model(engine, sol, {"refine": meta}), path=path)
+    return dataclasses.replace(to_model(fitted, sol, {"refine": meta}), path=path)
 
 
 def _table(engine: Engine, entries: list, sizes: list, objectives: list, E, chosen: int, reason: str) -> ModelPath:

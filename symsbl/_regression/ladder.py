@@ -129,7 +129,7 @@ def climb(ladder: Sequence[Library], fit: Callable, rule: SelectionRule) -> tupl
             for eq in current.model.equations
             if eq.lhs in fitted
             and not eq.fixed
-            and len(fitted[eq.lhs].terms) < len(eq.terms)
+            and len(fitted[eq.lhs].terms) < len(eq.terms)  # before any refit on the richer library's rows
             and _better(fitted[eq.lhs], current.on_rows_of(trial, fit, eq.lhs), current.held[eq.lhs], rule)
         }
         if not taken:
