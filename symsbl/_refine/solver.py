@@ -216,6 +216,10 @@ def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
 
 #: Levenberg-Marquardt steps of one round at most.
 LM_STEPS = 60
+#: A crawl ends a round: its last CRAWL_PASSES passes lowered the objective by less than CRAWL_NATS together. A
+#: misfitting structure's Gauss-Newton model over-predicts its steps, which then gain hundredths of a nat each
+#: (or are refused) for the rest of the round; the nats the model choice weighs do not move with them.
+CRAWL_PASSES, CRAWL_NATS = 10, 0.1
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
@@ -229,6 +233,7 @@ def lm(
     E = _objective(it.made, it.theta, alpha, active)
     if not np.isfinite(E):
         return it, n_pass
+    history = [E]  # the objective after each pass
     for _ in range(max_iter):
         Hs, gs = restrict(it.made.H, it.made.g, active, npar)
         try:
@@ -261,6 +266,9 @@ def lm(
             if predicted < 1e-3 * tol:
                 break
             damping = damping.refused()
+        history.append(E)
+        if len(history) > CRAWL_PASSES and history[-CRAWL_PASSES - 1] - E < CRAWL_NATS:
+            break
     return it, n_pass
 
 
