@@ -216,18 +216,29 @@ def accept(E: float, E_trial: float, predicted: float) -> tuple[bool, float]:
 
 #: Levenberg-Marquardt steps of one round at most.
 LM_STEPS = 60
-#: A crawl ends a round: its last CRAWL_PASSES passes lowered the objective by less than CRAWL_NATS together. A
-#: misfitting structure's Gauss-Newton model over-predicts its steps, which then gain hundredths of a nat each
-#: (or are refused) for the rest of the round; the nats the model choice weighs do not move with them.
+#: A crawl ends a round: its last CRAWL_PASSES passes lowered the objective by less than CRAWL_NATS together.
 CRAWL_PASSES, CRAWL_NATS = 10, 0.1
 
 
 @np.errstate(over="ignore", invalid="ignore")  # a trial that overflows is rejected by its non-finite cost
 def lm(
-    passes: Passes, it: Iterate, alpha, active, *, tol: float, max_iter: int = LM_STEPS, damping: Damping = Damping()
+    passes: Passes,
+    it: Iterate,
+    alpha,
+    active,
+    *,
+    tol: float,
+    max_iter: int = LM_STEPS,
+    damping: Damping = Damping(),
+    crawl: bool = True,
 ) -> tuple[Iterate, int]:
     """Levenberg-Marquardt on the ``active`` coefficients (the others stay as they are) at fixed noise
-    precisions and segments; returns the iterate reached (with its pass) and the number of passes made."""
+    precisions and segments; returns the iterate reached (with its pass) and the number of passes made.
+
+    A round ends at ``tol``, after ``max_iter`` passes, or (``crawl``) when its last :data:`CRAWL_PASSES`
+    passes lowered the objective by less than :data:`CRAWL_NATS`: a misfitting structure over-predicts its
+    Gauss-Newton steps, which then gain a thousandth to a hundredth of a nat each, far below the nats the
+    model choice weighs."""
     it, n_pass = it.evaluated(passes)
     npar = it.theta.size
     E = _objective(it.made, it.theta, alpha, active)
@@ -267,7 +278,7 @@ def lm(
                 break
             damping = damping.refused()
         history.append(E)
-        if len(history) > CRAWL_PASSES and history[-CRAWL_PASSES - 1] - E < CRAWL_NATS:
+        if crawl and len(history) > CRAWL_PASSES and history[-CRAWL_PASSES - 1] - E < CRAWL_NATS:
             break
     return it, n_pass
 
