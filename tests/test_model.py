@@ -52,6 +52,36 @@ def test_print_shows_terms_with_uncertainties(duffing):
     assert line.startswith("x2' = ") and " F " in line and "x1^3" in line and "(" in line
 
 
+def _latent_model(u_terms, z_terms):
+    """A model with two latent states ``u`` and ``z`` (input Y, measured output F = u + z)."""
+    u, z, Y = symbols("u z Y")
+
+    def eq(lhs, terms, **kw):
+        estimates = tuple(TermEstimate(e, c, 0.0, fixed=f) for e, c, f in terms)
+        return Equation(lhs, estimates, np.zeros((len(terms),) * 2), 0.0, 0.0, **kw)
+
+    equations = (
+        eq("u", u_terms(u, Y)),
+        eq("z", z_terms(z, Y)),
+        eq("F", [(u, 1.0, False), (z, 2.0, False)], algebraic=True),
+    )
+    return IdentifiedModel((u, z), (Y,), equations, measured=(), outputs=(symsbl.AlgebraicOutput("F"),))
+
+
+def test_a_sum_term_prints_in_parentheses_and_each_latent_scale_is_named():
+    model = _latent_model(
+        lambda u, Y: [(Y - u, 120.0, False)], lambda z, Y: [(Y, 1.0, True), (z * ca.fabs(z) * ca.fabs(Y), -50.0, False)]
+    )
+    lines = str(model).splitlines()
+    assert lines[0] == "u' = 120 (Y - u)"  # 120 (Y - u), not 120 Y - u
+    assert lines[3] == "u: latent (not measured); its scale is fixed by the form of the term Y - u of u'"
+    assert lines[4] == "z: latent (not measured); scaled so that the term Y of z' has the coefficient 1"
+    # each term homogeneous in z (|s z| = s |z|), no coefficient fixed: z and 3 z fit alike
+    free = _latent_model(lambda u, Y: [(ca.tanh(u / 0.1), 1.0, False)], lambda z, Y: [(Y * ca.fabs(z), -5.0, False)])
+    assert free.convention("z") == "its scale is not fixed by a term of the model"
+    assert free.convention("u") == "its scale is fixed by the form of the term tanh(10.0 u) of u'"
+
+
 def test_sympy_and_latex_forms(duffing):
     _, _, model = duffing
     eqs = model.to_sympy()

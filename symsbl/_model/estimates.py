@@ -203,6 +203,7 @@ class Equation:
                 else (f"{'- ' if t.coef < 0 else '+ ' if parts else ''}{abs(t.coef):g}")
             )
             label = pretty(t.name)
+            label = f"({label})" if isinstance(t.sympy, sp.Add) else label  # a sum is one term: c (a - b)
             body = text if label == "1" else f"{text} {label}"
             if t.fixed:
                 body += " (scale convention)"

@@ -21,6 +21,7 @@ import numpy as np
 import sympy as sp
 
 from .._base.errors import ParameterError, expected
+from .._base.format import pretty
 from .._simulation.ode import OdeSystem
 from .estimates import Equation, FitMethod
 from .modelfile import load_model, model_from_json, model_to_json, save_model
@@ -148,14 +149,23 @@ class IdentifiedModel:
 
     def convention(self, name: str) -> str:
         """How the scale (and sign) of the latent state ``name`` is fixed: ``z`` and ``s z`` give the same
-        measured output, so the coefficient of ``z`` in the first equation that uses it is held fixed."""
+        measured output when every term is homogeneous in ``z``, so a coefficient is held fixed (that of ``z``
+        in the first equation that uses it, or one of the terms of ``z'``), or a term that is not homogeneous in
+        ``z`` fixes the scale by its form (``eta (Y - u)``, ``tanh(z / eps)``)."""
         for eq in self.equations:
             for t in eq.terms:
                 if t.fixed and t.name == name:
                     return f"scaled so that its coefficient in {eq.lhs}' is {t.coef:g}"
-        used = any(name in {s.name for s in t.sympy.free_symbols} for eq in self.equations for t in eq.terms)
-        if not used:
+        own = next((eq for eq in self.equations if eq.lhs == name and not eq.algebraic), None)
+        for t in own.terms if own is not None and not own.fixed else ():
+            if t.fixed:
+                return f"scaled so that the term {pretty(t.name)} of {name}' has the coefficient {t.coef:g}"
+        using = [(eq, t) for eq in self.equations for t in eq.terms if name in {s.name for s in t.sympy.free_symbols}]
+        if not using:
             return "not needed: no equation uses it (nothing hidden)"
+        for eq, t in using:
+            if not _homogeneous(t.sympy, name):
+                return f"its scale is fixed by the form of the term {pretty(t.name)} of {eq.written}"
         return "its scale is not fixed by a term of the model"
 
     # -- symbolic forms -------------------------------------------------------------------
@@ -252,3 +262,11 @@ class IdentifiedModel:
     def load(cls, path: str | Path) -> IdentifiedModel:
         """Read a model saved by :meth:`save` or ``symsbl identify --json``."""
         return load_model(cls, path)
+
+
+def _homogeneous(term: sp.Expr, name: str) -> bool:
+    """Whether ``term`` scales as a power of ``s`` when the symbol ``name`` is replaced by ``s * name``."""
+    symbol = next(s for s in term.free_symbols if s.name == name)
+    s = sp.Symbol("s", positive=True)
+    ratio = sp.simplify(term.subs(symbol, s * symbol) / term)
+    return ratio.free_symbols <= {s}
