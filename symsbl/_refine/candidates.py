@@ -225,23 +225,24 @@ def partial_cosines(A: np.ndarray, V: np.ndarray) -> np.ndarray:
 def prior(engine: Engine) -> np.ndarray:
     """Prior precisions of every coefficient of the compiled structure: the model's own (the relevance
     vector machine's, else ``1 / coef^2``); for an alternative the equation-error fit found
-    indistinguishable from a term, that term's prior on the same contribution; for another candidate
-    ``(s_term / s_rhs)^2``, a prior wide enough for it to carry the whole right-hand side."""
+    indistinguishable from a term, that term's prior on the same contribution; for another candidate, and
+    for a term of the model started at zero with no prior of its own, ``(s_term / s_rhs)^2``, a prior wide
+    enough for it to carry the whole right-hand side (``1 / 0^2`` would hold it at zero)."""
     model = engine.model
     Z = design_rows(model, engine.records, engine.guess)
     alpha: list[float] = []
     for eq, full in zip(model.equations, engine.full.equations):
         if full.fixed:
             continue
-        if len(full.terms) == len(eq.terms):  # no candidates: the model's own priors, no term values needed
-            alpha.extend(own_alpha(t) for t in full.terms if not t.fixed)
+        if len(full.terms) == len(eq.terms) and not any(_unset(t) for t in full.terms):
+            alpha.extend(own_alpha(t) for t in full.terms if not t.fixed)  # the model's own: no term values needed
             continue
         D = term_values([t.expr for t in full.terms], model, Z)
         scale = float(np.std(D[:, : len(eq.terms)] @ eq.coefs)) if eq.terms else 1.0
         for k, t in enumerate(full.terms):
             if t.fixed:
                 continue
-            if k < len(eq.terms):
+            if k < len(eq.terms) and not _unset(t):
                 alpha.append(own_alpha(t))
                 continue
             s = float(np.std(D[:, k]))
@@ -253,6 +254,11 @@ def prior(engine: Engine) -> np.ndarray:
             else:  # (a constant's twin has no spread to compare with)
                 alpha.append((s / scale) ** 2 if s > 0 and scale > 0 else 1.0)
     return np.array(alpha)
+
+
+def _unset(term) -> bool:
+    """A free term started at zero with no prior precision of its own (a term for the fit to find)."""
+    return not term.fixed and term.coef == 0.0 and not (np.isfinite(term.alpha) and term.alpha > 0)
 
 
 def own_alpha(term) -> float:
