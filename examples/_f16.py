@@ -5,12 +5,12 @@ See ``f16.py`` for the model and its argument; this module is what that script r
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
+from _csvrows import column, number, read_rows  # beside this module
 from scipy.io import loadmat
 from scipy.optimize import least_squares
 
@@ -49,29 +49,16 @@ def read_record(path: Path) -> Record:
             np.atleast_2d(raw["Acceleration"]).astype(float),
             float(np.ravel(raw["Fs"])[0]),
         )
-    with path.open(newline="", encoding="utf-8-sig") as handle:  # a spreadsheet's byte-order mark is no name
-        reader = csv.DictReader(handle)
-        rows, lines = [], []  # each row's cells, and the line of the file it ends on (blank lines are skipped)
-        for row in reader:
-            rows.append({k.strip(): (v or "").strip() for k, v in row.items() if k})
-            lines.append(reader.line_num)
+    rows, lines = read_rows(path)
     needed = ["Force", "Acceleration1", "Acceleration2", "Acceleration3"]
     if len(rows) < 2 * PERIOD:  # the score is taken after the first period
         raise ValueError(f"{len(rows)} rows, where a record holds two periods or more ({PERIOD} samples each)")
     missing = [name for name in [*needed, "Fs"] if name not in rows[0]]
     if missing:
         raise ValueError(f"no column {', '.join(missing)}")
-    column = {name: np.array([_number(r[name], line, name) for r, line in zip(rows, lines)]) for name in needed}
+    force, *acc = (column(rows, lines, name) for name in needed)
     at = next((k for k, r in enumerate(rows) if r["Fs"]), 0)  # the rate may be given in the first row only
-    return Record(column["Force"], np.vstack([column[n] for n in needed[1:]]), _number(rows[at]["Fs"], lines[at], "Fs"))
-
-
-def _number(text: str, line: int, name: str) -> float:
-    """The number in the cell of column ``name`` on ``line`` of the file, or one line naming the cell."""
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"line {line}, column {name}: expected a number, received {text!r}") from None
+    return Record(force, np.vstack(acc), number(rows[at]["Fs"], lines[at], "Fs"))
 
 
 def excited(fs: float) -> np.ndarray:
