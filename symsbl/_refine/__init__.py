@@ -90,7 +90,8 @@ def refine(
     measured : sequence of str, optional
         The states to fit (default: the model's states present in the data). A column of a state that
         is not measured (a reconstruction of a latent state) is used only as the starting guess of its
-        trajectory.
+        trajectory (without one, zeros; the RK4 steps are chosen on the state as the starting model
+        simulates it).
     library : Library, optional
         The candidate library of the equation-error fit: with it, the equation-error runners-up and
         indistinguishable terms are tried too.

@@ -20,7 +20,7 @@ from .._derivatives.weakform import WeakForm
 from .._model import IdentifiedModel
 from .noise import innovations
 from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
-from .rows import design_rows, state_guess
+from .rows import design_rows, simulated_guess, state_guess
 from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
 from .solver import LM_STEPS, PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
@@ -75,10 +75,13 @@ class Engine:
         self.param = Parameterisation.of(fitted)
         substeps = settings.substeps
         if substeps == "auto":
+            rate = self._sign_rate()
             substeps = max(
-                choose_substeps(self.param, records, self.guess, self.param.theta0, self._sign_rate()),
-                settings.min_substeps,
+                choose_substeps(self.param, records, self.guess, self.param.theta0, rate), settings.min_substeps
             )
+            latent = simulated_guess(model, records, self.outputs, self.guess)
+            if latent is not None:  # the states no column holds, as the start simulates them, may be stiffer
+                substeps = max(substeps, choose_substeps(self.param, *latent, self.param.theta0, rate))
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)

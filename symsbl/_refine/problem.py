@@ -323,9 +323,9 @@ def choose_substeps(
     of memory at 1 kHz: the step ``h |lambda| = 0.27`` the second rule alone allows re-simulates the true
     model 1.2 % away from the exact response of a 4 s record; the first rule takes two substeps, 0.05 %.)
     The eigenvalues of the right-hand side's Jacobian are taken over up to 256 evenly spaced samples of the
-    records and at each state's extremes, where a hardening spring is stiffest (states not measured are
-    taken as zero there, velocities at their estimates). A ``tanh(a / eps)`` that stands for ``sign(a)``
-    adds the stiffness ``|coef| / eps`` (at ``a = 0``).
+    records and at each state's extremes, where a hardening spring is stiffest (velocities not measured
+    at their estimates, latent states as the starting model simulates them). A ``tanh(a / eps)`` that stands
+    for ``sign(a)`` adds the stiffness ``|coef| / eps`` (at ``a = 0``).
     """
     model = param.model
     nx = len(model.states)
