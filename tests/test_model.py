@@ -80,6 +80,13 @@ def test_a_sum_term_prints_in_parentheses_and_each_latent_scale_is_named():
     free = _latent_model(lambda u, Y: [(ca.tanh(u / 0.1), 1.0, False)], lambda z, Y: [(Y * ca.fabs(z), -5.0, False)])
     assert free.convention("z") == "its scale is not fixed by a term of the model"
     assert free.convention("u") == "its scale is fixed by the form of the term tanh(10.0 u) of u'"
+    # a fixed term of degree 1 in z' takes no factor when z is scaled: it fixes nothing (nor Max(0, z) in F)
+    linear = _latent_model(
+        lambda u, Y: [(Y - u, 1.0, False)], lambda z, Y: [(z * ca.fabs(Y), -1.0, True), (Y, 3.0, False)]
+    )
+    assert linear.convention("z") == "its scale is not fixed by a term of the model"
+    one_sided = _latent_model(lambda u, Y: [(Y - u, 1.0, False)], lambda z, Y: [(ca.fmax(z, 0) * Y, 2.0, False)])
+    assert one_sided.convention("z") == "its scale is not fixed by a term of the model"
 
 
 def test_sympy_and_latex_forms(duffing):
