@@ -63,15 +63,17 @@ def read_record(path: Path) -> Record:
         raise ValueError(f"{len(rows)} rows, where a record holds 100 samples or more")
     missing = [name for name in COLUMNS if name not in rows[0]]
     if missing:
-        raise ValueError(f"no column {', '.join(missing)}")
+        raise ValueError(f"no column {', '.join(missing)} (the columns are {', '.join(rows[0])})")
     at = next((k for k, r in enumerate(rows) if r.get("fs")), None)  # the rate may be given in the first row only
     if at is not None:
         fs = number(rows[at]["fs"], lines[at], "fs")
     elif "t" in rows[0]:
         t = column(rows, lines, "t")
+        if not np.all(np.diff(t) > 0):
+            raise ValueError("the times t do not increase: they give no sampling rate (add a column fs)")
         fs = (t.size - 1) / (t[-1] - t[0])
     else:
-        raise ValueError("no column fs or t to give the sampling rate")
+        raise ValueError("no column fs or t to give the sampling rate (add one)")
     return Record(*(column(rows, lines, name) for name in COLUMNS), fs=float(fs))
 
 
@@ -134,7 +136,8 @@ def law_terms(z: ca.SX) -> list[ca.SX]:
 
 
 def force_terms(zs: list[ca.SX]) -> list[ca.SX]:
-    """The force's library: a viscous and a quadratic damper, a spring, each voltage-dependent, and the states."""
+    """The force's library: a constant, a spring, a viscous and a quadratic damper (both also times the filtered
+    voltage), the filtered voltage, and each hidden state alone and times the filtered voltage."""
     base = [ca.SX(1), D, V, V * ca.fabs(V), U, U * V, U * V * ca.fabs(V)]
     return base + [e for z in zs for e in (z, U * z)]
 
@@ -178,14 +181,29 @@ def substeps(rec: Record, stiffness: float) -> int:
     return max(SUBSTEPS, math.ceil(2 * np.max(np.abs(rec.V)) * stiffness / rec.fs / STEP))
 
 
+def laws(model: IdentifiedModel) -> list[tuple[float, float, float]]:
+    """The coefficients ``(c1, c2, c3)`` of each hysteretic law ``z' = V + (c1 + c2 u) |V| z |z| + c3 V z^2``."""
+    names = {z.name() for z in hidden_symbols(model.metadata["hidden_states"])}
+    return [tuple(t.coef for t in eq.terms[1:4]) for eq in model.equations if eq.lhs in names]
+
+
 def stiffness(model: IdentifiedModel, rec: Record) -> float:
-    """The largest ``sqrt(|g + h u| + |b|)`` of the model's hysteretic laws over the record's voltages."""
-    worst = 0.0
-    for eq in model.equations:
-        if eq.lhs.startswith("z"):
-            g, h, b = (t.coef for t in eq.terms[1:4])
-            worst = max(worst, *(abs(g + h * y) + abs(b) for y in (rec.Y.min(), rec.Y.max())))
-    return math.sqrt(worst)
+    """The largest ``sqrt(|c1 + c2 u| + |c3|)`` of the model's hysteretic laws over the record's voltages."""
+    worst = [abs(c1 + c2 * y) + abs(c3) for c1, c2, c3 in laws(model) for y in (rec.Y.min(), rec.Y.max())]
+    return math.sqrt(max(worst, default=0.0))
+
+
+def bounded_voltages(model: IdentifiedModel) -> tuple[float, float]:
+    """The filtered voltages over which every hysteretic law saturates: ``c1 + c2 u < -max(0, c3)``.
+
+    Loading (``V z > 0``), ``z' = V (1 + (c1 + c2 u + c3) z^2)`` saturates where ``c1 + c2 u + c3 < 0``; unloading
+    from there, ``z' = V (1 - (c1 + c2 u - c3) z^2)`` keeps the sign of ``V`` (z returns) where ``c1 + c2 u < 0``.
+    """
+    low, high = -np.inf, np.inf
+    for c1, c2, c3 in laws(model):
+        edge = (-max(0.0, c3) - c1) / c2 if c2 else (np.inf if c1 < -max(0.0, c3) else -np.inf)
+        low, high = (max(low, edge), high) if c2 < 0 else (low, min(high, edge))
+    return float(low), float(high)
 
 
 def _simulate_law(rhs, state: ca.SX, drive: ca.SX, rec: Record, signal: np.ndarray, x0: float, steps: int):
@@ -222,7 +240,7 @@ def start(rec: Record, n_hidden: int) -> tuple[IdentifiedModel, dict]:
 
 
 def identify(rec: Record, n_hidden: int) -> IdentifiedModel:
-    """The model with ``n_hidden`` hysteretic states fitted to ``rec`` by output error, its terms selected."""
+    """The model with ``n_hidden`` hysteretic states fitted to ``rec`` by output error, every term kept."""
     model, guesses = start(rec, n_hidden)
     columns = ["F", *guesses]  # the states' start trajectories seed the output error's
     states = np.column_stack([rec.F, *guesses.values()])

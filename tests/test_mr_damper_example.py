@@ -1,7 +1,7 @@
 """The MR damper example's pieces against references: an independent integrator, a known model, the records.
 
-The example itself (identification and scores on the shared record) runs in ``test_examples.py``; these
-checks need no data.
+The example's saved model is scored on the shared record in ``test_examples.py`` (its identification, 20 minutes,
+runs with ``--identify``); these checks need no data.
 """
 
 import sys
@@ -14,6 +14,8 @@ from scipy.interpolate import CubicSpline
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 import _mr_damper as mr  # noqa: E402
+
+import symsbl  # noqa: E402
 
 FS = 1000.0
 
@@ -85,6 +87,29 @@ def test_a_record_reads_with_its_rate_from_fs_or_t_and_a_bad_cell_is_named(tmp_p
     path.write_text("t,D,V,F\n" + "\n".join(f"{k},0,0,0" for k in range(200)))
     with pytest.raises(ValueError, match="no column Y"):
         mr.read_record(path)
+
+
+@pytest.mark.parametrize("voltage, bounded", [(1.9, True), (2.1, False)])
+def test_a_law_saturates_inside_its_bounded_voltages_and_runs_away_past_them(voltage, bounded):
+    law = (-1e4, 4e3, 2e3)  # c1 + c2 u < -max(0, c3) while u < (1e4 - 2e3) / 4e3 = 2 V
+    model = mr.damper_model(100.0, [law], np.zeros(len(mr.force_terms(mr.hidden_symbols(1)))))
+    assert mr.bounded_voltages(model) == pytest.approx((-np.inf, 2.0))
+    rec = synthetic(seconds=4.0)
+    rec = mr.Record(rec.D, rec.V, np.full(rec.F.size, voltage), rec.F, rec.fs)
+    z = symsbl.simulate(
+        model.to_system(),
+        rec.t,
+        inputs=rec.inputs,
+        x0=[voltage, 0.0],
+        method="rk4",
+        substeps=16,
+        on_divergence="truncate",
+    ).column("z1")
+    if bounded:
+        saturation = 1 / np.sqrt(8e3 - 4e3 * voltage)  # loading: z' = V (1 - (8e3 - 4e3 u) z^2)
+        assert z.size == rec.F.size and np.max(np.abs(z)) <= saturation * (1 + 1e-6)
+    else:  # no saturation loading: the state grows without bound
+        assert z.size < rec.F.size or np.max(np.abs(z)) > 1e3
 
 
 def test_the_active_part_ends_where_the_damper_rests():
