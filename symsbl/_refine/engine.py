@@ -81,7 +81,8 @@ class Engine:
             )
             latent = simulated_guess(model, records, self.outputs, self.guess)
             if latent is not None:  # the states no column holds, as the start simulates them, may be stiffer
-                substeps = max(substeps, choose_substeps(self.param, *latent, self.param.theta0, rate))
+                parts, rows = latent
+                substeps = max(substeps, choose_substeps(self.param, parts, rows, self.param.theta0, rate))
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)

@@ -39,7 +39,7 @@ def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
     return np.vstack(rows)
 
 
-def simulated_guess(model: IdentifiedModel, records, measured, guess: np.ndarray):
+def simulated_guess(model: IdentifiedModel, records, measured, guess: np.ndarray) -> tuple[list, np.ndarray] | None:
     """Each record's first :data:`GUESS_SAMPLES` samples and the guess on them with the states no column holds
     simulated by the starting model (None when every state has a column): zeros, the guess of those states,
     hide a stiffness the choice of substeps must see (a hysteretic state turns fastest where it saturates)."""
