@@ -10,6 +10,7 @@ import numpy as np
 from .._base.casadi import run_chunks
 from .._derivatives.kinematics import completed_columns
 from .._model import IdentifiedModel
+from .._model.outputs import latent_of
 from .problem import resolve_outputs
 
 __all__ = ["state_guess", "simulated_guess", "design_rows", "term_values"]
@@ -25,9 +26,7 @@ def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
     of a state that is not measured is a guess only), the members of each kinematic pair reconstructed from the
     measured ones (a velocity from its position, a position or velocity from an acceleration), zeros.
     ``measured``: the channels (names or outputs) fitted."""
-    outputs = resolve_outputs(model, measured)
-    acceleration = {o.equation: o.name for o in outputs if o.kind == "acceleration"}
-    triples = [(x, v, acceleration.get(v)) for x, v in model.kinematics]
+    triples = _triples(model, measured)
     rows = []
     for r in records:
         G = np.zeros((r.n_samples, len(model.states)))
@@ -39,13 +38,19 @@ def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
     return np.vstack(rows)
 
 
+def _triples(model: IdentifiedModel, measured) -> list[tuple]:
+    """The kinematic triples ``(x, v, a)`` of ``model``, ``a`` the column of an accelerometer on ``v`` (or None)."""
+    acceleration = {o.equation: o.name for o in resolve_outputs(model, measured) if o.kind == "acceleration"}
+    return [(x, v, acceleration.get(v)) for x, v in model.kinematics]
+
+
 def simulated_guess(model: IdentifiedModel, records, measured, guess: np.ndarray) -> tuple[list, np.ndarray] | None:
     """Each record's first :data:`GUESS_SAMPLES` samples and the guess on them with the states no column holds
     simulated by the starting model (None when every state has a column): zeros, the guess of those states,
     hide a stiffness the choice of substeps must see (a hysteretic state turns fastest where it saturates)."""
-    outputs = resolve_outputs(model, measured)
-    acceleration = {o.equation: o.name for o in outputs if o.kind == "acceleration"}
-    triples = [(x, v, acceleration.get(v)) for x, v in model.kinematics]
+    if not latent_of(model.state_names, resolve_outputs(model, measured), model.kinematics):
+        return None  # every state is read by a fitted channel or reconstructed from one
+    triples = _triples(model, measured)
     parts, rows, offset, simulated = [], [], 0, False
     for r in records:
         part = r.slice(0, GUESS_SAMPLES)
