@@ -1,6 +1,8 @@
 """IdentifiedModel forms (print, sympy, LaTeX, CasADi, JSON) and re-simulation checks."""
 
+import dataclasses
 import json
+import math
 
 import casadi as ca
 import numpy as np
@@ -137,6 +139,20 @@ def test_json_round_trip(duffing, tmp_path):
     assert str(back) == str(model)
     np.testing.assert_array_equal(back.equation("x2").coefs, model.equation("x2").coefs)
     np.testing.assert_array_equal(back.equations[1].covariance, model.equations[1].covariance)
+
+
+def test_a_term_whose_standard_deviation_is_unknown_saves_as_null_and_loads(duffing, tmp_path):
+    # a term the regression could not bound (std NaN, as a start's extended model may hold) is written as
+    # null, which the reader takes back as unknown: the file was once refused on reading
+    _, _, model = duffing
+    eq = model.equations[1]
+    terms = (dataclasses.replace(eq.terms[0], std=math.nan),) + eq.terms[1:]
+    unknown = dataclasses.replace(model, equations=(model.equations[0], dataclasses.replace(eq, terms=terms)))
+    unknown.save(tmp_path / "unknown.json")
+    assert json.loads((tmp_path / "unknown.json").read_text())["equations"][1]["terms"][0]["std"] is None
+    back = IdentifiedModel.load(tmp_path / "unknown.json")
+    assert math.isnan(back.equations[1].terms[0].std)
+    assert back.equations[1].terms[1].std == eq.terms[1].std
 
 
 def test_a_covariance_symmetric_to_rounding_loads_and_an_asymmetric_one_does_not(duffing, tmp_path):

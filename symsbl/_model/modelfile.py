@@ -101,7 +101,7 @@ def model_to_json(model) -> dict[str, Any]:
                     {
                         "term": t.name,
                         "coef": t.coef,
-                        "std": t.std,
+                        "std": _finite_or_none(t.std),
                         "alpha": _finite_or_none(t.alpha),
                         "evidence": _finite_or_none(t.evidence),
                         "alternatives": list(t.alternatives),
