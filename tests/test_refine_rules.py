@@ -301,3 +301,43 @@ def test_a_windowed_pass_is_the_full_pass_on_its_window():
         lead_only, n_window = initial_states(passes, start, sweeps=4, tol=0.0, rtol=0.0, rows=(a, a + lead))
         assert n_full == n_window == 5 and not np.allclose(fitted.X0[1], X0[1], rtol=1e-3)  # the state moved
         assert lead_only.X0[1] == pytest.approx(fitted.X0[1], rel=1e-9, abs=1e-12)
+
+
+def test_a_large_structure_tries_the_terms_of_one_variable_of_each_equations_neighbourhood(monkeypatch):
+    """A chain of four masses (eight states and a force: nine terms of one variable) offers each equation those
+    of the variables it holds, their kinematic partners and the force; the others only as the equation error's
+    alternatives, runners-up or look-alikes, which it offered in every equation before."""
+    import symsbl._refine.candidates as cand
+    from symsbl._refine.rows import design_rows
+
+    x = symsbl.symbols("x1 x2 x3 x4")
+    v = symsbl.symbols("v1 v2 v3 v4")
+    (F,) = symsbl.symbols("F")
+    k = [3e3, 2e3, 4e3, 2.5e3]
+    force = [-k[0] * x[0] + k[1] * (x[1] - x[0]) - 0.5 * v[0]]
+    force += [-k[i] * (x[i] - x[i - 1]) + k[i + 1] * (x[i + 1] - x[i]) - 0.5 * v[i] for i in (1, 2)]
+    force += [-k[3] * (x[3] - x[2]) - 0.5 * v[3] + F]
+    system = OdeSystem(tuple(x) + tuple(v), (F,), tuple(v) + tuple(force), name="chain of 4")
+    data = symsbl.simulate(
+        system, symsbl.time_grid(4.0, 512), inputs=symsbl.Multisine(rms=20.0, f_min=1.0, f_max=30.0, seed=3)
+    ).with_noise(0.005, seed=0)
+    library = symsbl.polynomial(list(x) + list(v), 1) + symsbl.inputs([F])
+    model = symsbl.identify(data, library, refine=False, kinematics="x1:v1,x2:v2,x3:v3,x4:v4")
+    alone = {t.name for t in library.terms if t.sympy.is_Symbol}
+    assert len(alone) == 9 > cand.ALONE_EVERYWHERE
+    args = (model, cand.Rebased(library, model), design_rows(model, [data], data.states))
+    offered, _ = cand.candidates(*args)
+    monkeypatch.setattr(cand, "ALONE_EVERYWHERE", len(alone))
+    everywhere, _ = cand.candidates(*args)
+    dropped = 0
+    for eq in model.equations:
+        if eq.fixed:
+            continue
+        held = {str(s) for t in eq.terms for s in t.sympy.free_symbols} | {eq.lhs}
+        near = {n for n in alone if n == "F" or {f"x{n[1:]}", f"v{n[1:]}"} & held}
+        tried = {str(e) for e, _ in offered.get(eq.lhs, [])}
+        before = {str(e) for e, _ in everywhere.get(eq.lhs, [])}
+        assert near - set(eq.names) <= tried <= before, eq.lhs
+        assert before - tried <= alone - near, eq.lhs  # only a far mass's variables are left out
+        dropped += len(before - tried)
+    assert dropped >= 4

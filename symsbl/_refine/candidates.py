@@ -32,6 +32,8 @@ __all__ = [
     "partial_cosines",
     "LOOK_ALIKE",
     "PER_EQUATION",
+    "ALONE_EVERYWHERE",
+    "neighbourhood",
     "prior",
     "extend",
 ]
@@ -112,6 +114,10 @@ LOOK_ALIKE = 0.95
 SIMPLER_ALIKE = 0.8
 #: Alternatives and look-alikes tried per equation at most (the runners-up come on top).
 PER_EQUATION = 6
+#: Terms of one variable tried in every equation while the library holds at most this many; beyond, an
+#: equation tries those of the variables it holds, their kinematic partners and the inputs (see
+#: :func:`candidates`).
+ALONE_EVERYWHERE = 8
 
 
 def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
@@ -126,7 +132,11 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     leaves out under noise first, and what a free-run simulation resolves (a chain of five masses damped
     at 0.5 % of critical, 287 candidates: seven of its thirteen damping terms missing from the equation
     error's model, five from the output error's with three spurious terms in their place; all found, and
-    nothing else, with them tried).
+    nothing else, with them tried). Where the library holds more than :data:`ALONE_EVERYWHERE` such terms,
+    an equation tries those of its neighbourhood: the variables its terms hold, its own state, their
+    kinematic partners and the inputs (a chain of ten masses, positions measured, offered 21 in each of
+    its ten equations: 264 coefficients compiled at once, 167 with the neighbourhoods; the chain of five
+    stays exact, every state measured or the positions alone).
 
     Returns ``({state: [(expr, 0.0), ...]}, {state: {look-alike: term}})``: a look-alike is tried in its
     term's place, not beside it (see :func:`symsbl._refine.selection.select`).
@@ -139,6 +149,7 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     for eq in model.equations:
         if eq.fixed:
             continue
+        near = alone if len(alone) <= ALONE_EVERYWHERE else [n for n in alone if n in neighbourhood(eq, model)]
         alike = look_alikes(eq, library, model, Z, values, finite)
         present = set(eq.names)
 
@@ -148,11 +159,20 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
         kept = usable([n for t in eq.terms for n in t.alternatives] + list(alike))[:PER_EQUATION]
         kept += [n for n in usable(eq.runners_up) if n not in kept]
         pairs = {n: alike[n] for n in kept if n in alike}  # a term of one variable added below goes beside
-        kept += [n for n in usable(alone) if n not in kept]
+        kept += [n for n in usable(near) if n not in kept]
         if kept:
             out[eq.lhs] = [(library[n].expr, 0.0) for n in kept]
             twins[eq.lhs] = pairs
     return out, twins
+
+
+def neighbourhood(eq, model: IdentifiedModel) -> set[str]:
+    """The variables of ``eq``'s terms, its own state, their kinematic partners and the model's inputs."""
+    names = {str(s) for t in eq.terms for s in t.sympy.free_symbols} | {eq.lhs}
+    for pair in model.kinematics:
+        if names & set(pair):
+            names |= set(pair)
+    return names | set(model.input_names)
 
 
 def look_alikes(
