@@ -351,6 +351,34 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
 
 
+def test_the_staged_pass_of_a_large_structure_gives_the_same_blocks(monkeypatch):
+    """The pass a large structure takes (sensitivities carried through the RK4 stages as matrix products) gives
+    the blocks of the pass that differentiates the whole step, to round-off, with two substeps, a force and a
+    segment boundary; a structure takes it when its step's C source would exceed the bound."""
+    from symsbl._refine import sensitivity
+    from symsbl._refine.engine import Engine, Settings
+    from symsbl._refine.sensitivity import staged_step
+
+    record, _, _ = _duffing_record(7)
+    start = identify(record, _library(), refine=False)
+    settings = Settings(substeps=2, jit=False)
+    engine = Engine(start, [record], ("x1", "x2"), settings, {})
+    passes = engine.passes
+    w = np.array([1e4, 1e2])
+    starts = passes.segment_starts(1500)
+    X0 = engine.guess[starts]
+    theta = engine.param.theta0 * (1 + 0.01 * np.cos(np.arange(engine.param.n_free)))  # off the start
+    whole = passes.sensitivities(theta, X0, passes.segments(starts), w)
+    built = []
+    monkeypatch.setattr(sensitivity, "STAGED_SOURCE", 1000)
+    monkeypatch.setattr(sensitivity, "staged_step", lambda *a: built.append(a) or staged_step(*a))
+    staged = Engine(start, [record], ("x1", "x2"), settings, {}).passes
+    assert len(built) == 1
+    again = staged.sensitivities(theta, X0, staged.segments(starts), w)
+    for a, b in zip(dataclasses.astuple(whole), dataclasses.astuple(again)):
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
+
+
 def test_longer_segments_start_from_the_states_the_shorter_ones_reach():
     """Segments of 192 samples after segments of 128 (a limit on the length, ``longest``, need not be a
     multiple of the stages): a new segment starting inside an old one starts from the state the old one's

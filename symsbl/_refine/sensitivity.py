@@ -12,6 +12,11 @@ The residuals and Jacobian rows of a chunk then go through the noise model's whi
 channel; identity for white noise) and the noise precisions, and the blocks ``J^T W J``, ``J^T W r`` and the
 squared residuals are summed per segment with matrix products, each chunk's pieces of a segment at once:
 one pass gives every block of the normal equations at any segment length.
+
+A large structure (a step whose C source would exceed :data:`STAGED_SOURCE`) takes :func:`staged_step`
+instead: the same derivative of the RK4 map, carried through the stages as matrix products of the
+right-hand side's sparse Jacobians with ``S`` (an MX graph whose source grows with the model, not with
+states times coefficients).
 """
 
 from __future__ import annotations
@@ -100,25 +105,65 @@ def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps:
     # candidate coefficients).
     jac = ca.jacobian(x_next, ca.vertcat(v["x"], v["theta"]))
     S_next = jac[:, :nx] @ S + ca.horzcat(jac[:, nx:], ca.SX.zeros(nx, nx))
-    reset = v["reset"] > 0.5
-    x1 = ca.if_else(reset, v["x_start"], x_next)
-    S1 = ca.if_else(reset, ca.SX(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
+    z = ca.vertcat(v["x"], ca.vec(S))
+    f = _reset_and_observe(z, v, v, x_next, S_next, observe, ny, {"cse": True})
+    return f, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
+
+
+def _reset_and_observe(z, args: dict, v: dict, x_next, S_next, observe, ny: int, opts: dict) -> ca.Function:
+    """The step ``(z, ud, dt, theta, reset, x_start, un) -> (z_next, h, Jh)`` of a step's ``x_next`` and
+    ``S_next`` (SX or MX, in the symbols ``args``): reset where a segment starts, then observed. ``v``: the SX
+    symbols of :func:`_symbols`, in which the outputs and their Jacobians are written."""
+    nx = x_next.shape[0]
+    npar = S_next.shape[1] - nx
+    kind = type(z)
+    reset = args["reset"] > 0.5
+    x1 = ca.if_else(reset, args["x_start"], x_next)
+    S1 = ca.if_else(reset, kind(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
     xs = ca.SX.sym("xs", nx)
     h = observe(xs, v["un"], v["theta"])
     output = ca.Function("output", [xs, v["un"], v["theta"]], [h, ca.jacobian(h, xs), ca.jacobian(h, v["theta"])])
-    h1, hx, ht = output(x1, v["un"], v["theta"])
-    Jh = hx @ S1 + ca.horzcat(ht, ca.SX.zeros(ny, nx))
-    z = ca.vertcat(v["x"], ca.vec(S))
+    h1, hx, ht = output(x1, args["un"], args["theta"])
+    Jh = ca.mtimes(hx, S1) + ca.horzcat(ht, kind.zeros(ny, nx))
     names = ["z", "ud", "dt", "theta", "reset", "x_start", "un"]
-    f = ca.Function(
+    return ca.Function(
         "sensitivity_step",
-        [z, *(v[n] for n in names[1:])],
+        [z, *(args[n] for n in names[1:])],
         [ca.vertcat(x1, ca.vec(S1)), h1, ca.vec(Jh)],
         names,
         ["z_next", "h", "Jh"],
-        {"cse": True},
+        opts,
     )
-    return f, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
+
+
+def staged_step(param: Parameterisation, observe, n_outputs: int, substeps: int) -> tuple[ca.Function, dict]:
+    """:func:`sensitivity_step` with ``S`` carried through the RK4 stages: ``K = f_x(x_i) S_i + [f_theta(x_i), 0]``
+    at each stage state ``x_i`` (whose ``S_i`` the stage's update gives), ``S_next = S + h/6 (K1 + 2 K2 + 2 K3 +
+    K4)`` per substep: the exact derivative of the same discrete map. The Jacobians are small SX functions
+    called from an MX graph, whose products and sums CasADi writes as loops."""
+    nx, npar, ny = len(param.model.states), param.n_free, n_outputs
+    ns, nu = npar + nx, len(param.model.inputs)
+    v = _symbols(param, substeps)
+    xs, us = ca.SX.sym("xs", nx), ca.SX.sym("us", nu)
+    f = param.rhs(xs, us, v["theta"])
+    local = ca.Function("rhs_jac", [xs, us, v["theta"]], [f, ca.jacobian(f, xs), ca.jacobian(f, v["theta"])])
+    m = {k: ca.MX.sym(k, sym.shape[0]) for k, sym in v.items()}
+    z = ca.MX.sym("z", nx + nx * ns)
+    x, S = z[:nx], ca.reshape(z[nx:], nx, ns)
+    dt, pad = m["dt"] / substeps, ca.MX.zeros(nx, nx)
+
+    def stage(xi, Si, node: int):
+        k, fx, ft = local(xi, m["ud"][node * nu : (node + 1) * nu] if nu else ca.MX(0, 1), m["theta"])
+        return k, ca.mtimes(fx, Si) + ca.horzcat(ft, pad)
+
+    for j in range(substeps):
+        k1, K1 = stage(x, S, 2 * j)
+        k2, K2 = stage(x + dt / 2 * k1, S + dt / 2 * K1, 2 * j + 1)
+        k3, K3 = stage(x + dt / 2 * k2, S + dt / 2 * K2, 2 * j + 1)
+        k4, K4 = stage(x + dt * k3, S + dt * K3, 2 * j + 2)
+        x, S = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4), S + dt / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
+    step = _reset_and_observe(z, m, v, x, S, observe, ny, {})
+    return step, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
 def state_step(param: Parameterisation, substeps: int) -> ca.Function:
@@ -173,6 +218,14 @@ def _chunk(
 #: CPU for the identification against 49 s compiled. A model file's structure, fitted once by ``validate``, keeps
 #: the general bound.
 FIT_SOURCE = 2_000_000
+
+#: Largest C source of a fit's pass written from :func:`sensitivity_step` (bytes, estimated as
+#: :data:`SOURCE_PER_INSTRUCTION` per instruction of its step); a larger structure takes :func:`staged_step`.
+#: A ten-mass chain's pass (20 states, 167 coefficients) was 6.5 MB: gcc needed 59 s and 4.3 GB at -O1, on the
+#: virtual machine a pass took 12 s; its staged pass, 134 kB of C, compiled in 0.6 s and took 4.0 s.
+STAGED_SOURCE = FIT_SOURCE
+#: Bytes of C per instruction of a step as CasADi writes it (measured 22.8 and 23.6 on chains of 5 and 10 masses).
+SOURCE_PER_INSTRUCTION = 24
 
 #: Uncompiled chunk functions of the structures used last, by the key of their step.
 _VM_CHUNKS: dict = {}
@@ -268,7 +321,10 @@ class Passes:
 
     def __init__(self, param: Parameterisation, records: Records, jit="auto", max_source: int = MAX_AUTO_SOURCE):
         self.param, self.records = param, records
-        step, self.layout = sensitivity_step(param, param.observe(records.outputs), records.n_outputs, records.substeps)
+        parts = (param, param.observe(records.outputs), records.n_outputs, records.substeps)
+        step, self.layout = sensitivity_step(*parts)
+        if step.n_instructions() * SOURCE_PER_INSTRUCTION > STAGED_SOURCE:
+            step, self.layout = staged_step(*parts)
         lay = self.layout
         # divides CHUNK, the padding and the plain simulation's calls
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
