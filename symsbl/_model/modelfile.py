@@ -19,7 +19,7 @@ Schema (version 2; version 1 files, without ``fit``, are read unchanged)::
      "covariance": [[...]] (output error: the joint covariance of all coefficients),
      "equations": [{"lhs": str, "rhs": str, "fixed": bool (a kinematic equation),
                     "algebraic": true (only for the equation of an algebraic output, after the states'),
-                    "terms": [{"term": str, "coef": float, "std": float, "alpha": float|null,
+                    "terms": [{"term": str, "coef": float, "std": float|null, "alpha": float|null,
                                "evidence": float|null, "alternatives": [str, ...],
                                "fixed": true (only for a coefficient fixed by convention)}, ...],
                     "noise_std": float, "log_evidence": float|null, "n_rows": int,

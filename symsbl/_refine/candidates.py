@@ -149,7 +149,8 @@ def candidates(model: IdentifiedModel, library: Rebased, Z: np.ndarray):
     for eq in model.equations:
         if eq.fixed:
             continue
-        near = alone if len(alone) <= ALONE_EVERYWHERE else [n for n in alone if n in neighbourhood(eq, model)]
+        around = neighbourhood(eq, model) if len(alone) > ALONE_EVERYWHERE else set(alone)
+        near = [n for n in alone if n in around]
         alike = look_alikes(eq, library, model, Z, values, finite)
         present = set(eq.names)
 

@@ -150,7 +150,7 @@ def staged_step(param: Parameterisation, observe, n_outputs: int, substeps: int)
     m = {k: ca.MX.sym(k, sym.shape[0]) for k, sym in v.items()}
     z = ca.MX.sym("z", nx + nx * ns)
     x, S = z[:nx], ca.reshape(z[nx:], nx, ns)
-    dt, pad = m["dt"] / substeps, ca.MX.zeros(nx, nx)
+    h, pad = m["dt"] / substeps, ca.MX.zeros(nx, nx)
 
     def stage(xi, Si, node: int):
         k, fx, ft = local(xi, m["ud"][node * nu : (node + 1) * nu] if nu else ca.MX(0, 1), m["theta"])
@@ -158,10 +158,10 @@ def staged_step(param: Parameterisation, observe, n_outputs: int, substeps: int)
 
     for j in range(substeps):
         k1, K1 = stage(x, S, 2 * j)
-        k2, K2 = stage(x + dt / 2 * k1, S + dt / 2 * K1, 2 * j + 1)
-        k3, K3 = stage(x + dt / 2 * k2, S + dt / 2 * K2, 2 * j + 1)
-        k4, K4 = stage(x + dt * k3, S + dt * K3, 2 * j + 2)
-        x, S = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4), S + dt / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
+        k2, K2 = stage(x + h / 2 * k1, S + h / 2 * K1, 2 * j + 1)
+        k3, K3 = stage(x + h / 2 * k2, S + h / 2 * K2, 2 * j + 1)
+        k4, K4 = stage(x + h * k3, S + h * K3, 2 * j + 2)
+        x, S = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), S + h / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
     step = _reset_and_observe(z, m, v, x, S, observe, ny, {})
     return step, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
@@ -214,9 +214,9 @@ def _chunk(
 #: Largest C source of a fit's passes compiled under ``jit="auto"`` (bytes). A fit calls them thousands of times:
 #: a 5-degree-of-freedom chain's 640 kB pass compiled in 17 s and its refinement took 52 s of CPU, against 227 s
 #: on CasADi's virtual machine under the general bound (:data:`symsbl._base.jit.MAX_AUTO_SOURCE`); its selection's
-#: pass with every candidate (74 coefficients, 1005 kB) ran on the virtual machine under a bound of 1 MB, 87 s of
-#: CPU for the identification against 49 s compiled. A model file's structure, fitted once by ``validate``, keeps
-#: the general bound.
+#: pass with every candidate (74 coefficients, 1005 kB, before the selection's neighbourhoods) ran on the virtual
+#: machine under a bound of 1 MB, 87 s of CPU for the identification against 49 s compiled. A model file's
+#: structure, fitted once by ``validate``, keeps the general bound.
 FIT_SOURCE = 2_000_000
 
 #: Largest C source of a fit's pass written from :func:`sensitivity_step` (bytes, estimated as
