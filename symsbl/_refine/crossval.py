@@ -113,6 +113,9 @@ def cross_validate(passes: Passes, sol: Solution, cv: Folds) -> CrossValidation:
     seg = passes.segments(starts)
     X0 = simulated[starts]
     blocks = passes.sensitivities(sol.theta, X0, seg, sol.w, sol.ar)
+    if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
+        # a fold's free run diverged: every downdate holds it, so no fold has a finite error
+        return CrossValidation(np.full(len(cv), np.inf))
     Y, valid = passes.records.Y, passes.valid[:n]
     spread = np.array([np.std(Y[valid[:, c], c]) for c in range(Y.shape[1])])
     spread[~(spread > 0)] = 1.0
