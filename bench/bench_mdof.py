@@ -6,11 +6,16 @@ System: N masses in a chain, the first tied to the ground, states ``x1..xN`` (po
 are drawn once (seed 11) and do not depend on N. Two cubic springs: ``kg x1^3`` between the ground and mass 1 and
 ``kc (xN - x(N-1))^3`` between masses N - 1 and N, each scaled so that its force at one standard deviation of
 the linear response's stretch is 20 % of the linear spring's (the nonlinearity is as visible at every N). A
-random-phase multisine force (20 N rms, 1-30 Hz, seed 3, period 4 s) acts on the last mass; the record is 4 s at
-1024 Hz (4097 samples, the same at every N), simulated by CVODES, every position and velocity measured with
+random-phase multisine force (20 N rms, 1-30 Hz, seed 3, one period) acts on the last mass; the record is 4 s at
+1024 Hz (4097 samples) while its weak-form rows (a quarter of the samples) number at least twice the candidates,
+else doubled until they do (16 s at N = 10), simulated by CVODES, every position and velocity measured with
 0.5 % noise (seed 0). Identification: ``identify(record, polynomial(states, 3) + inputs([F]),
 kinematics="x1:v1,...")``, the defaults otherwise (weak-form equation error, RVM, output-error refinement with
 its term selection). The library grows as ``C(2N + 3, 3) + 1`` terms: 36, 85, 287 (1772 at N = 10).
+With ``--measured positions`` (page *mdof-positions*) the record holds the positions alone (``states=`` names
+the velocities too); with ``--measured accelerations`` (page *mdof-accelerations*) the accelerations alone
+(``kinematics="x1:v1:a1,..."``; the noise-free ones from the simulated states, 0.5 % of each one's RMS added,
+seed 0).
 
 Measured in one process, in order of N, with an empty compilation cache (``SYMSBL_JIT_CACHE`` set to a fresh
 folder, so every compiled function is compiled in the run), one BLAS thread:
@@ -46,6 +51,7 @@ import argparse
 import cProfile
 import functools
 import io
+import math
 import os
 import pstats
 import re
@@ -60,7 +66,7 @@ from _report import one_blas_thread, table, write_page  # noqa: E402  (bench/ is
 
 import symsbl
 import symsbl._identify as _identify_module
-from symsbl import Multisine, OdeSystem, compare_to_truth, identify, simulate, symbols, time_grid
+from symsbl import Multisine, OdeSystem, Trajectory, compare_to_truth, identify, simulate, symbols, time_grid
 from symsbl._base import jit as _jit
 from symsbl._refine import sensitivity as _sensitivity
 
@@ -70,7 +76,9 @@ NOISE = 0.005
 ZETA = 0.005
 #: Force of a cubic spring at one standard deviation of its stretch, as a share of the linear spring's.
 CUBIC_SHARE = 0.2
-FORCE = dict(rms=20.0, f_min=1.0, f_max=30.0, seed=3, period=SECONDS)
+FORCE = dict(rms=20.0, f_min=1.0, f_max=30.0, seed=3)
+#: What the record holds: every state, the positions alone, or the accelerations alone.
+MEASURED = ("all", "positions", "accelerations")
 MAX_N = 10
 _rng = np.random.default_rng(11)
 MASSES = _rng.uniform(1.0, 1.5, MAX_N)
@@ -111,16 +119,46 @@ def damping_ratios(n: int) -> tuple[float, float]:
     return float(zeta.min()), float(zeta.max())
 
 
+def seconds(n: int) -> float:
+    """The record's length for ``n`` masses: :data:`SECONDS`, doubled until its weak-form rows (a quarter of its
+    samples) number at least twice the library's ``C(2n + 3, 3) + 1`` candidates."""
+    length = SECONDS
+    while FS * length / 4 < 2 * (math.comb(2 * n + 3, 3) + 1):
+        length *= 2
+    return length
+
+
 def system_and_record(n: int):
     """The chain of ``n`` with its cubic springs scaled on the linear response, and the noisy record."""
-    t = time_grid(SECONDS, FS)
-    linear = simulate(chain(n), t, inputs=Multisine(**FORCE))
+    length = seconds(n)
+    t = time_grid(length, FS)
+    force = Multisine(**FORCE, period=length)
+    linear = simulate(chain(n), t, inputs=force)
     col = {name: linear.states[:, j] for j, name in enumerate(linear.state_names)}
     kg = CUBIC_SHARE * SPRINGS[0] / np.std(col["x1"]) ** 2
     kc = CUBIC_SHARE * SPRINGS[n - 1] / np.std(col[f"x{n}"] - col[f"x{n - 1}"]) ** 2
     system = chain(n, kg, kc)
-    record = simulate(system, t, inputs=Multisine(**FORCE)).with_noise(NOISE, seed=0)
-    return system, record, (kg, kc)
+    clean = simulate(system, t, inputs=force)
+    return system, clean.with_noise(NOISE, seed=0), (kg, kc), clean
+
+
+def observed(n: int, measured: str = "all"):
+    """The system, the record as ``measured`` (see :data:`MEASURED`), the options of ``identify`` that name
+    its states, and the cubic springs."""
+    system, record, springs, clean = system_and_record(n)
+    names = [str(s) for s in system.states]
+    if measured == "all":
+        return system, record, dict(kinematics=",".join(f"x{i + 1}:v{i + 1}" for i in range(n))), springs
+    if measured == "positions":
+        columns, labels, kinematics = record.states[:, :n], names[:n], ",".join(f"x{i + 1}:v{i + 1}" for i in range(n))
+    else:
+        accel = np.asarray(system.evaluate_rhs(clean.states, clean.inputs))[:, n:]
+        rng = np.random.default_rng(0)
+        columns = accel + NOISE * accel.std(axis=0) * rng.standard_normal(accel.shape)
+        labels = [f"a{i + 1}" for i in range(n)]
+        kinematics = ",".join(f"x{i + 1}:v{i + 1}:a{i + 1}" for i in range(n))
+    trajectory = Trajectory(record.t, columns, record.inputs, tuple(labels), tuple(record.input_names))
+    return system, trajectory, dict(kinematics=kinematics, states=names), springs
 
 
 # -- timers -----------------------------------------------------------------------------------------------------
@@ -281,17 +319,16 @@ def _terms(truth) -> tuple[list[str], list[str]]:
     return missing, spurious
 
 
-def run(n: int, jit="auto") -> dict:
-    system, record, (kg, kc) = system_and_record(n)
+def run(n: int, jit="auto", measured: str = "all") -> dict:
+    system, record, naming, (kg, kc) = observed(n, measured)
     library = symsbl.polynomial(list(system.states), 3) + symsbl.inputs(list(system.inputs))
-    kinematics = ",".join(f"x{i + 1}:v{i + 1}" for i in range(n))
     STAGES.reset()
     for kept in (SOURCES, PASSES, SIZES, REFINED):
         kept.clear()
     with one_blas_thread():
         cpu0, t0 = _cpu(), time.perf_counter()
         with STAGES.stage("equation error, rest"):
-            model = identify(record, library, kinematics=kinematics, refine_options={"jit": jit})
+            model = identify(record, library, **naming, refine_options={"jit": jit})
         wall, cpu = time.perf_counter() - t0, _cpu() - cpu0
     info = model.metadata.get("refine", {})
     missing, spurious = _terms(compare_to_truth(model, system))
@@ -331,15 +368,14 @@ def run(n: int, jit="auto") -> dict:
     )
 
 
-def profile(n: int, folder: str, top: int = 15) -> None:
-    system, record, _ = system_and_record(n)
+def profile(n: int, folder: str, top: int = 15, measured: str = "all") -> None:
+    system, record, naming, _ = observed(n, measured)
     library = symsbl.polynomial(list(system.states), 3) + symsbl.inputs(list(system.inputs))
-    kinematics = ",".join(f"x{i + 1}:v{i + 1}" for i in range(n))
     _empty_caches(folder)
     profiler = cProfile.Profile()
     with one_blas_thread():
         profiler.enable()
-        identify(record, library, kinematics=kinematics)
+        identify(record, library, **naming)
         profiler.disable()
     stats = pstats.Stats(profiler, stream=io.StringIO()).stats
     total = max(v[3] for v in stats.values())
@@ -482,6 +518,7 @@ def main():
         "--no-compiled", action="store_true", help="skip the largest N with the refinement's passes compiled"
     )
     parser.add_argument("--no-profile", action="store_true", help="skip the cProfile run of the largest N")
+    parser.add_argument("--measured", choices=MEASURED, default="all", help="what the record holds (default: all)")
     args = parser.parse_args()
     sizes = sorted({int(s) for s in args.sizes.split(",")} | ({MAX_N} if args.big else set()))
     if min(sizes) < 2 or max(sizes) > MAX_N:
@@ -492,7 +529,7 @@ def main():
     with tempfile.TemporaryDirectory(prefix="symsbl_bench_mdof_") as tmp:
         _empty_caches(os.path.join(tmp, "timed"))
         for n in sizes:
-            r = run(n)
+            r = run(n, measured=args.measured)
             results.append(r)
             print(
                 f"N = {n}: {r['terms']} candidates, kg = {r['kg']:.3g}, kc = {r['kc']:.3g}, modal damping "
@@ -503,10 +540,14 @@ def main():
         report(results)
         if not args.no_compiled:
             _empty_caches(os.path.join(tmp, "compiled"))
-            compiled(results[-1], run(max(sizes), jit=True))
+            compiled(results[-1], run(max(sizes), jit=True, measured=args.measured))
         if not args.no_profile:
-            profile(max(sizes), os.path.join(tmp, "profiled"))
-    write_page("mdof", __doc__)
+            profile(max(sizes), os.path.join(tmp, "profiled"), measured=args.measured)
+    if args.measured == "all":
+        write_page("mdof", __doc__)
+    else:
+        titled = __doc__.replace(" grows:", f" grows, recorded by its {args.measured} alone:", 1)
+        write_page(f"mdof-{args.measured}", titled)
 
 
 if __name__ == "__main__":

@@ -998,7 +998,7 @@ def test_a_chain_of_five_masses_finds_every_weak_dashpot():
     """Five masses in a chain, each dashpot 0.5 % of its spring's critical damping, cubic springs to the ground
     and between the last two masses, every state measured at 0.5 % noise, a degree-3 library of the ten states
     (287 terms): the equation error's penalty leaves weak dashpots out (seven of thirteen, on the chain of
-    ``bench/bench_mdof.py``), so the output error tries every term of one variable an equation lacks, and the
+    ``bench/bench_mdof.py``), so the output error tries the terms of one variable each equation lacks nearby, and the
     free-run simulation keeps the true ones. Simulated by CVODES."""
     n = 5
     m = np.array([1.2, 1.0, 1.4, 1.1, 1.3])
