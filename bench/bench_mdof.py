@@ -511,9 +511,7 @@ def compiled(auto: dict, forced: dict) -> None:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="2,3,5", help="comma-separated N")
-    parser.add_argument(
-        "--big", action="store_true", help=f"also N = {MAX_N} (long: its passes' C source exceeds the 1 MB bound)"
-    )
+    parser.add_argument("--big", action="store_true", help=f"also N = {MAX_N} (long: tens of minutes)")
     parser.add_argument(
         "--no-compiled", action="store_true", help="skip the largest N with the refinement's passes compiled"
     )

@@ -11,6 +11,9 @@ from .._base.casadi import run_chunks
 from .._derivatives.kinematics import completed_columns
 from .._model import IdentifiedModel
 from .._model.outputs import latent_of
+from .._simulation.ode import OdeSystem
+from .._simulation.rk4 import run_rk4
+from .._simulation.signals import Sampled
 from .problem import resolve_outputs
 
 __all__ = ["state_guess", "simulated_guess", "design_rows", "term_values"]
@@ -68,40 +71,36 @@ def simulated_guess(model: IdentifiedModel, records, measured, guess: np.ndarray
 
 def _simulated(model: IdentifiedModel, record, G: np.ndarray, missing: list[int]) -> np.ndarray:
     """The states ``missing`` simulated from zero by the model's own equations, the other states held at their
-    columns of ``G`` and the inputs at the record's: RK4 with the drive linear between samples, at
+    columns of ``G`` and the inputs at the record's (both linear between samples): fixed-step RK4 at
     :data:`GUESS_SUBSTEPS` in turn until the run stays finite; zeros if none does."""
     known = [k for k in range(len(model.states)) if k not in missing]
-    drive = ca.vertcat(*[model.states[k] for k in known], *model.inputs)
-    x = ca.vertcat(*[model.states[k] for k in missing])
-    rows = {eq.lhs: sum((t.coef * t.expr for t in eq.terms), ca.SX(0)) for eq in model.equations if not eq.algebraic}
-    rhs = ca.Function("latent_rhs", [x, drive], [ca.vertcat(*[rows[model.state_names[k]] for k in missing])])
+    full = model.to_system()
+    system = OdeSystem(
+        states=tuple(model.states[k] for k in missing),
+        inputs=tuple(model.states[k] for k in known) + tuple(model.inputs),
+        rhs=tuple(full.rhs[k] for k in missing),
+        parameters=full.parameters,
+        parameter_values=full.parameter_values,
+        name="latent states",
+    )
     U = np.column_stack([record.column(n) for n in model.input_names]) if model.inputs else np.zeros((len(G), 0))
-    W = np.column_stack([G[:, known], U])
-    W = np.vstack([W[:-1].T, W[1:].T])  # each interval's drive at its two ends
-    for substeps in GUESS_SUBSTEPS:
-        X = np.asarray(_stepper(rhs, x.numel(), drive.numel(), record.dt, substeps).mapaccum(W.shape[1])(0.0, W))
-        if np.all(np.isfinite(X)):  # RK4 past its stability limit grows without bound within a few steps
-            return np.vstack([np.zeros((1, len(missing))), X.T])
+    drive = [Sampled(record.t, np.column_stack([G[:, known], U]))]
+    for substeps in GUESS_SUBSTEPS:  # RK4 past its stability limit grows without bound within a few steps
+        X, failed, _ = run_rk4(
+            system,
+            record.t,
+            drive,
+            np.zeros(len(missing)),
+            rtol=None,
+            atol=None,
+            substeps=substeps,
+            chunk_size=4096,
+            jit=False,
+            options=None,
+        )
+        if failed is None:
+            return X
     return np.zeros((len(G), len(missing)))
-
-
-def _stepper(rhs: ca.Function, nx: int, nw: int, dt: float, substeps: int) -> ca.Function:
-    """One sample interval of RK4 in ``substeps`` steps, the drive linear between its values at the two ends."""
-    x0, ends = ca.SX.sym("x0", nx), ca.SX.sym("w", 2 * nw)
-    h = dt / substeps
-
-    def w(s):
-        return (1 - s) * ends[:nw] + s * ends[nw:]
-
-    x = x0
-    for i in range(substeps):
-        s = i / substeps
-        k1 = rhs(x, w(s))
-        k2 = rhs(x + h / 2 * k1, w(s + 0.5 / substeps))
-        k3 = rhs(x + h / 2 * k2, w(s + 0.5 / substeps))
-        k4 = rhs(x + h * k3, w(s + 1 / substeps))
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return ca.Function("latent_step", [x0, ends], [x])
 
 
 def design_rows(model: IdentifiedModel, records, guess: np.ndarray, most: int = 20000) -> np.ndarray:
