@@ -59,6 +59,10 @@ class DenseGram:
         """``G[:, idx]``, shape (n_terms, len(idx))."""
         return self.matrix[:, idx]
 
+    def block(self, idx):
+        """``G[idx][:, idx]``, shape (len(idx), len(idx)), without copying the other rows of its columns."""
+        return self.matrix[np.ix_(idx, idx)]
+
 
 @dataclass(frozen=True)
 class Solution:
@@ -370,7 +374,8 @@ def _gram_residual(gram, b, tt, n):
     eps = np.finfo(float).eps
 
     def residual(active, mu):
-        g = gram.columns(active)[active]
+        # a source that holds the matrix hands out the block alone: its columns cost n_terms rows each
+        g = gram.block(active) if hasattr(gram, "block") else gram.columns(active)[active]
         value = tt - 2.0 * mu @ b[active] + mu @ g @ mu
         bound = eps * (len(mu) + np.sqrt(n)) * (tt + np.abs(mu) @ np.abs(g) @ np.abs(mu))
         return max(value, bound)
