@@ -380,6 +380,92 @@ def test_the_staged_pass_of_a_large_structure_gives_the_same_blocks(monkeypatch)
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(a))), np.max(np.abs(a - b))
 
 
+def test_a_staged_fit_of_some_coefficients_carries_only_their_sensitivities(monkeypatch):
+    """A staged structure's fit of a subset of its coefficients takes a pass carrying only those: its blocks are
+    the whole pass's rows and columns of the subset and the initial states, to round-off, zero elsewhere; the
+    end sensitivities likewise; and the fit reaches the optimum the whole pass reaches."""
+    from symsbl._refine import sensitivity
+    from symsbl._refine.engine import Engine, Settings
+
+    record, _, _ = _duffing_record(7)
+    start = identify(record, _library(), refine=False)
+    monkeypatch.setattr(sensitivity, "STAGED_SOURCE", 1000)
+    x1, x2 = start.states
+    candidates = {"x2": [(ca.sin(x1), 0.0), (x2**3, 0.0), (x1**2, 0.0)]}
+    engine = Engine(start, [record], ("x1", "x2"), Settings(substeps=2, jit=False), candidates)
+    passes = engine.passes
+    npar, nx = len(engine.positions), 2
+    assert passes.staged and npar == engine.base.size + 3
+    subset = engine.passes_for(engine.base)
+    assert subset is not passes and subset.columns == [int(k) for k in engine.base]
+    assert engine.passes_for(np.arange(npar)) is passes  # every coefficient: the engine's own pass
+    w = np.array([1e4, 1e2])
+    starts = passes.segment_starts(400)
+    X0 = engine.guess[starts]
+    theta = engine.param.theta0 * (1 + 0.01 * np.cos(np.arange(npar)))
+    whole = passes.sensitivities(theta, X0, passes.segments(starts), w)
+    part = subset.sensitivities(theta, X0, subset.segments(starts), w)
+    idx = np.concatenate([engine.base, npar + np.arange(nx)])
+    off = np.setdiff1d(np.arange(npar + nx), idx)
+    scale = np.max(np.abs(whole.H))
+    assert np.allclose(part.H[:, idx[:, None], idx], whole.H[:, idx[:, None], idx], rtol=1e-9, atol=1e-12 * scale)
+    assert np.allclose(part.g[:, idx], whole.g[:, idx], rtol=1e-9, atol=1e-12 * np.max(np.abs(whole.g)))
+    assert np.allclose(part.end_S[:, idx], whole.end_S[:, idx], rtol=1e-9, atol=1e-12)
+    assert not part.H[:, off].any() and not part.H[:, :, off].any() and not part.g[:, off].any()
+    assert np.allclose(part.rr, whole.rr, rtol=1e-12) and np.array_equal(part.n_kept, whole.n_kept)
+    theta0 = np.zeros(npar)
+    theta0[engine.base] = engine.param.theta0[engine.base]
+    alpha = np.full(npar, 1e-6)
+    fitted = engine.fit(engine.base, theta0, alpha)
+    monkeypatch.setattr(engine, "passes_for", lambda active: passes)
+    reference = engine.fit(engine.base, theta0, alpha)
+    stds = np.sqrt(np.diag(reference.posterior.covariance))
+    assert np.all(np.abs(fitted.theta - reference.theta)[engine.base] < 1e-3 * stds), (fitted.theta, reference.theta)
+    assert fitted.posterior.log_evidence == pytest.approx(reference.posterior.log_evidence, abs=1e-3)
+
+
+def test_a_staged_selection_extends_the_fit_by_the_candidates_the_score_test_finds(monkeypatch):
+    """A staged structure's selection fits the structure extended by the candidates whose score gain (one pass at
+    the fitted structure) clears a share of the penalty, not by every candidate: the Duffing oscillator's start
+    without its cubic spring takes the cubic, whose gain is over ten times that of ``sin(x2)``, and under a penalty
+    above every gain no candidate; its score gain agrees with the fit's cost on a short step along it. An engine
+    that is not staged extends by every candidate."""
+    from symsbl._refine import sensitivity
+    from symsbl._refine.engine import Engine, Settings
+    from symsbl._refine.screen import score_gains
+    from symsbl._refine.selection import PROMISING_SHARE, _promising
+
+    record, _, _ = _duffing_record(7)
+    x1, x2, F = symbols("x1 x2 F")
+    start = identify(record, symsbl.custom([x2, x1, F], [x1, x2, F]), refine=False)
+    a, b = start.states
+    candidates = {"x2": [(a**3, 0.0), (ca.sin(b), 0.0)]}
+    settings = Settings(substeps=2, jit=False)
+    plain = Engine(start, [record], ("x1", "x2"), settings, candidates)
+    monkeypatch.setattr(sensitivity, "STAGED_SOURCE", 1000)
+    engine = Engine(start, [record], ("x1", "x2"), settings, candidates)
+    assert engine.passes.staged and not plain.passes.staged
+    npar = len(engine.positions)
+    cubic = npar - 2
+    theta0 = np.zeros(npar)
+    theta0[engine.base] = engine.param.theta0[engine.base]
+    first = engine.fit(engine.base, theta0, np.full(npar, 1e-6))
+    passes = engine.passes
+    blocks = passes.sensitivities(first.theta, first.X0, passes.segments(first.starts), first.w)
+    found = score_gains(blocks, npar, first.active, first.alpha[first.active], np.array([cubic, cubic + 1]))
+    assert found[0] > 10 * found[1], found
+    assert cubic in _promising(engine, first, 10.0)
+    above = 2 * found.max() / PROMISING_SHARE
+    assert list(_promising(engine, first, above)) == list(engine.base)
+    assert list(_promising(plain, first, above)) == list(range(npar))
+    # the score's one-coefficient part against the cost itself, a hundredth of the way to its quadratic optimum
+    H, g = blocks.H[:, cubic, cubic].sum(), blocks.g[:, cubic].sum()
+    step = np.zeros(npar)
+    step[cubic] = 0.01 * g / H
+    moved = passes.sensitivities(first.theta + step, first.X0, passes.segments(first.starts), first.w)
+    assert blocks.cost - moved.cost == pytest.approx(g * step[cubic] - 0.5 * H * step[cubic] ** 2, rel=0.01)
+
+
 def test_longer_segments_start_from_the_states_the_shorter_ones_reach():
     """Segments of 192 samples after segments of 128 (a limit on the length, ``longest``, need not be a
     multiple of the stages): a new segment starting inside an old one starts from the state the old one's

@@ -31,6 +31,11 @@ __all__ = ["Engine", "Settings", "residual_fraction", "record_horizon"]
 
 #: Samples whose spectrum sets the first segment length at most (the refinement's default sample budget).
 SPECTRUM_SAMPLES = 2**18
+#: A fit of a staged structure takes passes of its own coefficients when they and the states are at most this share
+#: of the structure's sensitivities (a ten-mass chain's first fit: 89 of its 167 coefficients).
+SUBSET_SHARE = 0.75
+#: Passes of coefficient subsets an engine keeps (the selection refits a few structures in turn).
+SUBSETS_KEPT = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +91,7 @@ class Engine:
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
         self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)
+        self._subsets: dict[tuple, Passes] = {}
         self.length0 = self._first_length()
         #: The noise model of the fits: "white", an autoregressive order, or "auto" until a fit has chosen one
         #: (every later fit of this engine keeps that order, so that their evidences compare).
@@ -132,6 +138,24 @@ class Engine:
         ]  # 0.5 / f_hi
         return int(max(64, 8 * min(windows)))
 
+    def passes_for(self, active) -> Passes:
+        """The passes of a fit of the coefficients ``active``: the engine's own, or for a staged structure (see
+        :class:`~symsbl._refine.sensitivity.Passes`) whose fit frees at most :data:`SUBSET_SHARE` of its
+        sensitivities, passes carrying only those (a staged pass costs in proportion to the sensitivities it
+        carries, and compiles in about a second)."""
+        passes = self.passes
+        npar, nx = len(self.positions), len(self.model.states)
+        active = tuple(int(k) for k in active)
+        if not passes.staged or len(active) + nx > SUBSET_SHARE * (npar + nx):
+            return passes
+        if active not in self._subsets:
+            while len(self._subsets) >= SUBSETS_KEPT:
+                self._subsets.pop(next(iter(self._subsets)))
+            self._subsets[active] = Passes(
+                passes.param, passes.records, passes.jit, passes.max_source, columns=active, staged=True
+            )
+        return self._subsets[active]
+
     def fit(
         self,
         active,
@@ -149,7 +173,7 @@ class Engine:
         if self.longest is not None:
             longest = self.longest if longest is None else min(int(longest), self.longest)
         sol = fit(
-            self.passes,
+            self.passes_for(active),
             theta0,
             alpha0,
             self.guess,

@@ -29,7 +29,7 @@ from .._base.rule import complexity
 from .laplace import x0_pinv
 from .problem import window_plan
 
-__all__ = ["screen_terms", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
+__all__ = ["screen_terms", "score_gains", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
 
 #: Samples the screening pass runs on at most (evenly spaced windows of the refined records).
 SCREEN_SAMPLES = 2**13
@@ -73,6 +73,16 @@ def gains(S: np.ndarray, g: np.ndarray, base: np.ndarray, alpha_base: np.ndarray
     score = g[others] - B @ solved[:, -1]
     scale = np.maximum(np.abs(S[others, others]), 1e-300)
     return np.where(info > 1e-10 * scale, 0.5 * score**2 / np.maximum(info, 1e-300), 0.0)
+
+
+def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """The gain (nats) of adding each coefficient of ``others`` to those of ``base`` (prior precisions
+    ``alpha_base``), from the blocks of one pass of ``npar`` coefficients (see the module text); zeros when the
+    blocks are not finite."""
+    if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
+        return np.zeros(len(others))
+    S, gr = _reduced(blocks.H, blocks.g, npar)
+    return gains(S, gr, base, alpha_base, others)
 
 
 def screen_terms(engine_of, model, records, solution, base_engine, library, threshold) -> dict:

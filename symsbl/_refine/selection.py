@@ -20,6 +20,7 @@ from .._base.rule import DEFAULT as DEFAULT_RULE
 from .._base.rule import SelectionRule
 from .laplace import reduce_model, reprior
 from .rows import design_rows, term_values
+from .screen import score_gains
 
 if TYPE_CHECKING:  # the engine builds on this module
     from .engine import Engine
@@ -171,8 +172,29 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
     return best
 
 
-def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None, rule: SelectionRule):
+#: A staged structure's extended fit takes the candidates whose score gain at the fitted structure is at least
+#: this share of the penalty per term (a pair that only together explains something scores less apiece).
+PROMISING_SHARE = 0.25
+
+
+def _promising(engine: Engine, first, cost: float) -> np.ndarray:
+    """The coefficients of the extended fit: every one; of a staged structure (see
+    :class:`~symsbl._refine.sensitivity.Passes`), whose passes cost in proportion to the coefficients they carry,
+    ``first``'s and the candidates whose score gain at ``first`` (one pass, :func:`score_gains`) is at least
+    :data:`PROMISING_SHARE` of the penalty ``cost``."""
     every = np.arange(len(engine.positions))
+    passes = engine.passes
+    if not passes.staged:
+        return every
+    others = np.setdiff1d(every, first.active)
+    with np.errstate(all="ignore"):
+        blocks = passes.sensitivities(first.theta, first.X0, passes.segments(first.starts), first.w, first.ar)
+        found = score_gains(blocks, first.theta.size, first.active, first.alpha[first.active], others)
+    return np.union1d(first.active, others[found >= PROMISING_SHARE * cost])
+
+
+def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None, rule: SelectionRule):
+    every = _promising(engine, first, cost_of(first))
     sol = first
     if every.size > engine.base.size:
         sol = _extended(engine, first, every, alpha)

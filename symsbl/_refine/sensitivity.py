@@ -89,12 +89,17 @@ def _symbols(param: Parameterisation, substeps: int):
     )
 
 
-def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps: int) -> tuple[ca.Function, dict]:
+def sensitivity_step(
+    param: Parameterisation, observe, n_outputs: int, substeps: int, columns=None
+) -> tuple[ca.Function, dict]:
     """The step ``(z, ud, dt, theta, reset, x_start, un) -> (z_next, h, Jh)`` with ``z = [x, vec(S)]``.
 
     ``observe(x, u, theta)`` gives the ``n_outputs`` outputs (an SX column) at the state ``x`` and the input
-    ``u`` of the sample; ``Jh`` is their Jacobian in ``[theta, x0]``, column-major ``(n_outputs * ns,)``."""
-    nx, npar, ny = len(param.model.states), param.n_free, n_outputs
+    ``u`` of the sample; ``Jh`` is their Jacobian in ``[theta[columns], x0]``, column-major ``(n_outputs * ns,)``
+    (``columns``: the coefficients differentiated, default all; ``theta`` is given whole)."""
+    nx, ny = len(param.model.states), n_outputs
+    cols = _columns(param, columns)
+    npar = param.n_free if cols is None else len(cols)
     ns = npar + nx
     v = _symbols(param, substeps)
     S = ca.SX.sym("S", nx, ns)
@@ -103,17 +108,32 @@ def sensitivity_step(param: Parameterisation, observe, n_outputs: int, substeps:
     # times S costs 2-10x fewer operations than pushing all ns directions through the step in forward mode
     # (measured: 325 against 596 for a Duffing oscillator, 11887 against 125406 for a 4-state chain with 89
     # candidate coefficients).
-    jac = ca.jacobian(x_next, ca.vertcat(v["x"], v["theta"]))
+    jac = ca.jacobian(x_next, ca.vertcat(v["x"], _differentiated(v["theta"], cols)))
     S_next = jac[:, :nx] @ S + ca.horzcat(jac[:, nx:], ca.SX.zeros(nx, nx))
     z = ca.vertcat(v["x"], ca.vec(S))
-    f = _reset_and_observe(z, v, v, x_next, S_next, observe, ny, {"cse": True})
+    f = _reset_and_observe(z, v, v, x_next, S_next, observe, ny, {"cse": True}, cols)
     return f, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
-def _reset_and_observe(z, args: dict, v: dict, x_next, S_next, observe, ny: int, opts: dict) -> ca.Function:
+def _columns(param: Parameterisation, columns) -> list[int] | None:
+    """The coefficients a step differentiates: ``columns`` (indices into ``theta``), None for all."""
+    if columns is None or len(columns) == param.n_free and list(columns) == list(range(param.n_free)):
+        return None
+    return [int(c) for c in columns]
+
+
+def _differentiated(theta, cols: list[int] | None):
+    """The part of the symbol ``theta`` a step differentiates (the symbol itself for all)."""
+    return theta if cols is None else theta[cols]
+
+
+def _reset_and_observe(
+    z, args: dict, v: dict, x_next, S_next, observe, ny: int, opts: dict, cols: list[int] | None
+) -> ca.Function:
     """The step ``(z, ud, dt, theta, reset, x_start, un) -> (z_next, h, Jh)`` of a step's ``x_next`` and
     ``S_next`` (SX or MX, in the symbols ``args``): reset where a segment starts, then observed. ``v``: the SX
-    symbols of :func:`_symbols`, in which the outputs and their Jacobians are written."""
+    symbols of :func:`_symbols`, in which the outputs and their Jacobians are written; ``cols``: the coefficients
+    ``S_next`` differentiates."""
     nx = x_next.shape[0]
     npar = S_next.shape[1] - nx
     kind = type(z)
@@ -122,7 +142,9 @@ def _reset_and_observe(z, args: dict, v: dict, x_next, S_next, observe, ny: int,
     S1 = ca.if_else(reset, kind(ca.horzcat(ca.DM.zeros(nx, npar), ca.DM.eye(nx))), S_next)
     xs = ca.SX.sym("xs", nx)
     h = observe(xs, v["un"], v["theta"])
-    output = ca.Function("output", [xs, v["un"], v["theta"]], [h, ca.jacobian(h, xs), ca.jacobian(h, v["theta"])])
+    output = ca.Function(
+        "output", [xs, v["un"], v["theta"]], [h, ca.jacobian(h, xs), ca.jacobian(h, _differentiated(v["theta"], cols))]
+    )
     h1, hx, ht = output(x1, args["un"], args["theta"])
     Jh = ca.mtimes(hx, S1) + ca.horzcat(ht, kind.zeros(ny, nx))
     names = ["z", "ud", "dt", "theta", "reset", "x_start", "un"]
@@ -136,17 +158,24 @@ def _reset_and_observe(z, args: dict, v: dict, x_next, S_next, observe, ny: int,
     )
 
 
-def staged_step(param: Parameterisation, observe, n_outputs: int, substeps: int) -> tuple[ca.Function, dict]:
+def staged_step(
+    param: Parameterisation, observe, n_outputs: int, substeps: int, columns=None
+) -> tuple[ca.Function, dict]:
     """:func:`sensitivity_step` with ``S`` carried through the RK4 stages: ``K = f_x(x_i) S_i + [f_theta(x_i), 0]``
     at each stage state ``x_i`` (whose ``S_i`` the stage's update gives), ``S_next = S + h/6 (K1 + 2 K2 + 2 K3 +
     K4)`` per substep: the exact derivative of the same discrete map. The Jacobians are small SX functions
-    called from an MX graph, whose products and sums CasADi writes as loops."""
-    nx, npar, ny = len(param.model.states), param.n_free, n_outputs
+    called from an MX graph, whose products and sums CasADi writes as loops. ``columns``: see
+    :func:`sensitivity_step`."""
+    nx, ny = len(param.model.states), n_outputs
+    cols = _columns(param, columns)
+    npar = param.n_free if cols is None else len(cols)
     ns, nu = npar + nx, len(param.model.inputs)
     v = _symbols(param, substeps)
     xs, us = ca.SX.sym("xs", nx), ca.SX.sym("us", nu)
     f = param.rhs(xs, us, v["theta"])
-    local = ca.Function("rhs_jac", [xs, us, v["theta"]], [f, ca.jacobian(f, xs), ca.jacobian(f, v["theta"])])
+    local = ca.Function(
+        "rhs_jac", [xs, us, v["theta"]], [f, ca.jacobian(f, xs), ca.jacobian(f, _differentiated(v["theta"], cols))]
+    )
     m = {k: ca.MX.sym(k, sym.shape[0]) for k, sym in v.items()}
     z = ca.MX.sym("z", nx + nx * ns)
     x, S = z[:nx], ca.reshape(z[nx:], nx, ns)
@@ -162,7 +191,7 @@ def staged_step(param: Parameterisation, observe, n_outputs: int, substeps: int)
         k3, K3 = stage(x + h / 2 * k2, S + h / 2 * K2, 2 * j + 1)
         k4, K4 = stage(x + h * k3, S + h * K3, 2 * j + 2)
         x, S = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), S + h / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
-    step = _reset_and_observe(z, m, v, x, S, observe, ny, {})
+    step = _reset_and_observe(z, m, v, x, S, observe, ny, {}, cols)
     return step, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
@@ -319,12 +348,30 @@ class Passes:
     precisions and the noise model, all given to it; the arrays this object keeps besides the records are
     scratch space the compiled calls read."""
 
-    def __init__(self, param: Parameterisation, records: Records, jit="auto", max_source: int = MAX_AUTO_SOURCE):
+    def __init__(
+        self,
+        param: Parameterisation,
+        records: Records,
+        jit="auto",
+        max_source: int = MAX_AUTO_SOURCE,
+        columns=None,
+        staged: bool | None = None,
+    ):
+        """``columns``: the coefficients whose sensitivities the pass carries (indices into ``theta``, default all;
+        the blocks of the others are zero); ``staged``: whether the step is :func:`staged_step` (default: when
+        :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`)."""
         self.param, self.records = param, records
-        parts = (param, param.observe(records.outputs), records.n_outputs, records.substeps)
-        step, self.layout = sensitivity_step(*parts)
-        if step.n_instructions() * SOURCE_PER_INSTRUCTION > STAGED_SOURCE:
+        self.columns = _columns(param, columns)
+        parts = (param, param.observe(records.outputs), records.n_outputs, records.substeps, self.columns)
+        step = None
+        if staged is None:
+            step, self.layout = sensitivity_step(*parts)
+            staged = step.n_instructions() * SOURCE_PER_INSTRUCTION > STAGED_SOURCE
+        if staged:
             step, self.layout = staged_step(*parts)
+        elif step is None:
+            step, self.layout = sensitivity_step(*parts)
+        self.staged = bool(staged)
         lay = self.layout
         # divides CHUNK, the padding and the plain simulation's calls
         self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
@@ -448,7 +495,20 @@ class Passes:
             )
         if not done:
             rr[:] = np.inf
-        return Blocks(H, g, rr, end_S, kept, residual)
+        return self._whole(Blocks(H, g, rr, end_S, kept, residual))
+
+    def _whole(self, blocks: Blocks) -> Blocks:
+        """``blocks`` of this pass's columns in the layout of every coefficient (zero where it carries none)."""
+        if self.columns is None:
+            return blocks
+        npar, nx = self.param.n_free, self.layout["nx"]
+        idx = np.concatenate([self.columns, npar + np.arange(nx)])
+        K, ns = len(blocks.H), npar + nx
+        H, g, end_S = np.zeros((K, ns, ns)), np.zeros((K, ns)), np.zeros((K, ns, nx))
+        H[:, idx[:, None], idx[None, :]] = blocks.H
+        g[:, idx] = blocks.g
+        end_S[:, idx] = blocks.end_S
+        return Blocks(H, g, blocks.rr, end_S, blocks.n_kept, blocks.residual)
 
     @np.errstate(over="ignore", invalid="ignore")  # a simulation that runs away gives non-finite blocks, refused later
     def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None, rows=None) -> bool:
