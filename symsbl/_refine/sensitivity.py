@@ -165,7 +165,12 @@ def staged_step(
     at each stage state ``x_i`` (whose ``S_i`` the stage's update gives), ``S_next = S + h/6 (K1 + 2 K2 + 2 K3 +
     K4)`` per substep: the exact derivative of the same discrete map. The Jacobians are small SX functions
     called from an MX graph, whose products and sums CasADi writes as loops. ``columns``: see
-    :func:`sensitivity_step`."""
+    :func:`sensitivity_step`.
+
+    The stages carry ``S`` transposed, ``K^T = S_i^T f_x^T + [f_theta, 0]^T``: CasADi's product of a dense
+    matrix by a sparse one runs down the dense one's long columns (a coefficient each), where ``f_x S`` runs
+    down ``f_x``'s few nonzeros per column (measured on a ten-mass chain's 187 sensitivities: 1.7-2.2 s a
+    pass against 3.9 s, the same blocks)."""
     nx, ny = len(param.model.states), n_outputs
     cols = _columns(param, columns)
     npar = param.n_free if cols is None else len(cols)
@@ -174,16 +179,18 @@ def staged_step(
     xs, us = ca.SX.sym("xs", nx), ca.SX.sym("us", nu)
     f = param.rhs(xs, us, v["theta"])
     local = ca.Function(
-        "rhs_jac", [xs, us, v["theta"]], [f, ca.jacobian(f, xs), ca.jacobian(f, _differentiated(v["theta"], cols))]
+        "rhs_jac",
+        [xs, us, v["theta"]],
+        [f, ca.jacobian(f, xs).T, ca.jacobian(f, _differentiated(v["theta"], cols)).T],
     )
     m = {k: ca.MX.sym(k, sym.shape[0]) for k, sym in v.items()}
     z = ca.MX.sym("z", nx + nx * ns)
-    x, S = z[:nx], ca.reshape(z[nx:], nx, ns)
+    x, S = z[:nx], ca.reshape(z[nx:], nx, ns).T  # S transposed from here on
     h, pad = m["dt"] / substeps, ca.MX.zeros(nx, nx)
 
     def stage(xi, Si, node: int):
-        k, fx, ft = local(xi, m["ud"][node * nu : (node + 1) * nu] if nu else ca.MX(0, 1), m["theta"])
-        return k, ca.mtimes(fx, Si) + ca.horzcat(ft, pad)
+        k, fx_t, ft_t = local(xi, m["ud"][node * nu : (node + 1) * nu] if nu else ca.MX(0, 1), m["theta"])
+        return k, ca.mtimes(Si, fx_t) + ca.vertcat(ft_t, pad)
 
     for j in range(substeps):
         k1, K1 = stage(x, S, 2 * j)
@@ -191,7 +198,7 @@ def staged_step(
         k3, K3 = stage(x + h / 2 * k2, S + h / 2 * K2, 2 * j + 1)
         k4, K4 = stage(x + h * k3, S + h * K3, 2 * j + 2)
         x, S = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), S + h / 6 * (K1 + 2 * K2 + 2 * K3 + K4)
-    step = _reset_and_observe(z, m, v, x, S, observe, ny, {}, cols)
+    step = _reset_and_observe(z, m, v, x, S.T, observe, ny, {}, cols)
     return step, dict(nx=nx, ns=ns, ny=ny, nz=nx + nx * ns, npar=npar)
 
 
