@@ -440,3 +440,21 @@ def test_other_user_errors():
     with pytest.raises(ParameterError, match=r"^set_params: expected parameter names among \[.*\], received 'alpha'$"):
         RVM().set_params(alpha=1.0)
     assert RVM().set_params(tol=0.1).get_params()["tol"] == 0.1
+
+
+def test_a_budget_the_plain_optimum_would_spend_still_reaches_the_penalised_one():
+    """The penalised fit starts from the plain optimum (a continuation); given no more iterations than the plain
+    optimum alone takes, it still ends converged at the support it reaches with the default budget (the plain
+    stage gets half the budget: with all of it, the penalty never acted and 33 terms came back, not 3)."""
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((300, 120))
+    X[:, 1:] += 0.95 * X[:, :-1]  # neighbouring columns correlated: the plain stage takes 163 iterations
+    w = np.zeros(120)
+    w[[5, 40, 90]] = [2.0, -1.5, 1.0]
+    y = X @ w + 0.5 * rng.standard_normal(300)
+    plain = RVM(prune_nats=None).fit(X, y)
+    assert len(plain.active_) > 20
+    reference = RVM(prune_nats=3.0).fit(X, y)
+    tight = RVM(prune_nats=3.0, max_iter=plain.n_iter_).fit(X, y)  # a RuntimeWarning (an error here) if not converged
+    assert tight.converged_ and list(tight.active_) == list(reference.active_) == [5, 40, 90]
+    assert np.all(tight.evidence_contribution_ >= 3.0)

@@ -317,7 +317,9 @@ def solve(
     # let it delete (and re-admit) terms from there. Started with the penalty on, the greedy
     # path can stop after one term when every next useful column is collinear with others and
     # none gains ``prune`` nats on its own, although the penalised optimum is far better.
-    n_iter, converged = _iterate(state, 0.0, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log)
+    # the plain optimum is only the penalised search's start: it gets half the iterations when a penalty follows
+    first = max_iter if prune <= 0 else max(max_iter // 2, 1)
+    n_iter, converged = _iterate(state, 0.0, first, free_mask, beta_fixed, beta_max, tol, residual, n, log)
     if prune > 0:
         more, converged = _iterate(
             state, prune, max_iter - n_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log
