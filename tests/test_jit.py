@@ -260,3 +260,28 @@ def test_a_caller_that_calls_a_function_often_may_compile_a_larger_source(fresh)
     from symsbl._refine.sensitivity import FIT_SOURCE
 
     assert jit_module.MAX_AUTO_SOURCE < FIT_SOURCE  # the refinement's passes compile what a one-off would not
+
+
+def test_a_large_source_is_compiled_at_a_lower_optimisation_and_kept_apart(fresh, monkeypatch):
+    """Generated C over the large-source bound is compiled with the large flags (gcc's -O3 time grows faster than
+    the source), gives the virtual machine's values and is kept under its own name: the same function under a
+    higher bound compiles again, at -O3, into a second library."""
+    calls = []
+    run = subprocess.run
+
+    def spy(args, *a, **k):
+        calls.append(list(args))
+        return run(args, *a, **k)
+
+    monkeypatch.setattr(jit_module.subprocess, "run", spy)
+    monkeypatch.setattr(jit_module, "LARGE_SOURCE", 100)
+    reference = evaluate(mapped(6))
+    compiled, is_compiled = jit_module.jit_wrap(mapped(6), "f_chunk", True, SimulationError)
+    assert is_compiled and calls[-1][1] == "-O1" and len(list(fresh.iterdir())) == 1
+    np.testing.assert_allclose(evaluate(compiled), reference, rtol=1e-14)
+    forget(monkeypatch)
+    monkeypatch.setattr(jit_module.subprocess, "run", spy)
+    monkeypatch.setattr(jit_module, "LARGE_SOURCE", 10**9)
+    again, is_compiled = jit_module.jit_wrap(mapped(6), "f_chunk", True, SimulationError)
+    assert is_compiled and calls[-1][1] == "-O3" and len(list(fresh.iterdir())) == 2
+    np.testing.assert_allclose(evaluate(again), reference, rtol=1e-14)

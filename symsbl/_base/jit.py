@@ -10,7 +10,9 @@ virtual machine, after one warning per reason: a library is opened with every sy
 (``RTLD_NOW``) before CasADi calls into it, since a symbol bound lazily that is missing ends the process
 at its first call.
 
-Compiling costs 0.1-2 s a Function (gcc ``-O3``), often more than the computation it speeds up on
+Compiling costs 0.1-2 s a Function (gcc ``-O3``; a source over :data:`LARGE_SOURCE` is compiled at ``-O1``,
+whose time grows less steeply: a five-mass chain's identification from an empty cache took 70 s of CPU at
+``-O3``, 51 s so, and 30 s against 38 s once compiled), often more than the computation it speeds up on
 a short record, and the same structures come back run after run (the same library, the same
 identified model re-simulated, the same refinement step). Compiled libraries are therefore kept:
 
@@ -50,7 +52,16 @@ import casadi as ca
 
 from .errors import SymsblError, expected
 
-__all__ = ["compiler", "jit_wrap", "jit_lookup", "cache_dir", "DISK_FILES", "CACHE_ENV", "MAX_AUTO_SOURCE"]
+__all__ = [
+    "compiler",
+    "jit_wrap",
+    "jit_lookup",
+    "cache_dir",
+    "DISK_FILES",
+    "CACHE_ENV",
+    "MAX_AUTO_SOURCE",
+    "LARGE_SOURCE",
+]
 
 #: Environment variable naming the directory of compiled libraries kept between runs ("off": none).
 CACHE_ENV = "SYMSBL_JIT_CACHE"
@@ -60,6 +71,10 @@ DISK_FILES = 256
 _STALE = 3600.0
 
 _FLAGS = ("-O3", "-march=native", "-w")  # -w: generated code (empty copies) warns harmlessly
+#: Generated C longer than this (bytes) is compiled at ``-O1``: gcc's ``-O3`` time grows faster
+#: than the source.
+LARGE_SOURCE = 256_000
+_LARGE_FLAGS = ("-O1", "-march=native", "-w")
 #: Largest generated C source compiled under ``jit="auto"`` (bytes): gcc's time grows faster than the source
 #: (measured: 80 kB in 1 s, 200 kB in 1.2 s, 730 kB in 15.5 s), so a larger function runs on the virtual
 #: machine, whose time is proportional to its size.
@@ -281,7 +296,9 @@ def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = N
     source, unusable = _source(fn)
     if unusable:
         return unusable
-    digest = hashlib.sha256((_fingerprint(cc) + "\n" + source).encode()).hexdigest()[:40]
+    flags = _LARGE_FLAGS if len(source) > LARGE_SOURCE else _FLAGS
+    marked = _fingerprint(cc) + ("" if flags == _FLAGS else "\n" + " ".join(flags))  # the flags it is built with
+    digest = hashlib.sha256((marked + "\n" + source).encode()).hexdigest()[:40]
     kept = cache_dir()
     directory = kept or _scratch_dir()
     library = os.path.join(directory, digest + ".so")
@@ -299,7 +316,7 @@ def _compile(fn: ca.Function, cc: str, build: bool = True, limit: int | None = N
         with open(partial + ".c", "w") as f:
             f.write(source)
         subprocess.run(
-            [cc, *_FLAGS, "-shared", "-fPIC", partial + ".c", "-o", partial + ".so"], check=True, capture_output=True
+            [cc, *flags, "-shared", "-fPIC", partial + ".c", "-o", partial + ".so"], check=True, capture_output=True
         )
         os.replace(partial + ".so", library)
     finally:
