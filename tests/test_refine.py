@@ -413,6 +413,10 @@ def test_a_staged_fit_of_some_coefficients_carries_only_their_sensitivities(monk
     assert np.allclose(part.end_S[:, idx], whole.end_S[:, idx], rtol=1e-9, atol=1e-12)
     assert not part.H[:, off].any() and not part.H[:, :, off].any() and not part.g[:, off].any()
     assert np.allclose(part.rr, whole.rr, rtol=1e-12) and np.array_equal(part.n_kept, whole.n_kept)
+    stepped = sensitivity.Passes(passes.param, passes.records, False, columns=engine.base, staged=False)
+    assert not stepped.staged  # the whole-step derivative of the same columns: the same blocks
+    again = stepped.sensitivities(theta, X0, stepped.segments(starts), w)
+    assert np.allclose(again.H, part.H, rtol=1e-9, atol=1e-12 * scale) and np.allclose(again.g, part.g, rtol=1e-9)
     theta0 = np.zeros(npar)
     theta0[engine.base] = engine.param.theta0[engine.base]
     alpha = np.full(npar, 1e-6)
@@ -454,10 +458,10 @@ def test_a_staged_selection_extends_the_fit_by_the_candidates_the_score_test_fin
     blocks = passes.sensitivities(first.theta, first.X0, passes.segments(first.starts), first.w)
     found = score_gains(blocks, npar, first.active, first.alpha[first.active], np.array([cubic, cubic + 1]))
     assert found[0] > 10 * found[1], found
-    assert cubic in _promising(engine, first, 10.0)
+    assert cubic in _promising(engine, first, lambda sol: 10.0)
     above = 2 * found.max() / PROMISING_SHARE
-    assert list(_promising(engine, first, above)) == list(engine.base)
-    assert list(_promising(plain, first, above)) == list(range(npar))
+    assert list(_promising(engine, first, lambda sol: above)) == list(engine.base)
+    assert list(_promising(plain, first, lambda sol: above)) == list(range(npar))
     # the score's one-coefficient part against the cost itself, a hundredth of the way to its quadratic optimum
     H, g = blocks.H[:, cubic, cubic].sum(), blocks.g[:, cubic].sum()
     step = np.zeros(npar)

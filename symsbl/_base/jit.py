@@ -71,14 +71,14 @@ DISK_FILES = 256
 _STALE = 3600.0
 
 _FLAGS = ("-O3", "-march=native", "-w")  # -w: generated code (empty copies) warns harmlessly
-#: Generated C longer than this (bytes) is compiled at ``-O1``: gcc's ``-O3`` time grows faster
-#: than the source.
-LARGE_SOURCE = 256_000
-_LARGE_FLAGS = ("-O1", "-march=native", "-w")
 #: Largest generated C source compiled under ``jit="auto"`` (bytes): gcc's time grows faster than the source
 #: (measured: 80 kB in 1 s, 200 kB in 1.2 s, 730 kB in 15.5 s), so a larger function runs on the virtual
 #: machine, whose time is proportional to its size.
 MAX_AUTO_SOURCE = 256_000
+#: Generated C longer than this (bytes: what only a fit's passes compile) is compiled at ``-O1``, whose time
+#: grows less steeply than ``-O3``'s; the code runs slower (see the module's description).
+LARGE_SOURCE = MAX_AUTO_SOURCE
+_LARGE_FLAGS = ("-O1", "-march=native", "-w")
 _MEMORY: OrderedDict[tuple, ca.Function] = OrderedDict()
 _MEMORY_SIZE = 64
 _SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)

@@ -145,7 +145,7 @@ class Engine:
         carries, and compiles in about a second)."""
         passes = self.passes
         npar, nx = len(self.positions), len(self.model.states)
-        active = tuple(int(k) for k in active)
+        active = tuple(sorted(int(k) for k in active))
         if not passes.staged or len(active) + nx > SUBSET_SHARE * (npar + nx):
             return passes
         if active not in self._subsets:

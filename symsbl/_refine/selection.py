@@ -3,7 +3,8 @@
 The objective is the relevance vector machine's, the :class:`~symsbl.SelectionRule`'s: log evidence minus
 ``T`` nats per free term (``T = 1/2 log N + log M`` by default, the extended BIC with ``N`` the measured
 samples and ``M`` the candidate terms). From one fit of the current structure extended by the candidates (the
-equation-error runners-up and the terms it found indistinguishable), Bayesian model reduction scores removing each
+equation-error runners-up and the terms it found indistinguishable; of a staged structure, those whose score gain
+at the fitted structure clears a share of the penalty), Bayesian model reduction scores removing each
 term without refitting; terms are removed one by one while that raises the objective. The structure
 it settles on is then refitted, and kept only if the refit confirms the gain.
 """
@@ -177,15 +178,16 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
 PROMISING_SHARE = 0.25
 
 
-def _promising(engine: Engine, first, cost: float) -> np.ndarray:
+def _promising(engine: Engine, first, cost_of) -> np.ndarray:
     """The coefficients of the extended fit: every one; of a staged structure (see
     :class:`~symsbl._refine.sensitivity.Passes`), whose passes cost in proportion to the coefficients they carry,
     ``first``'s and the candidates whose score gain at ``first`` (one pass, :func:`score_gains`) is at least
-    :data:`PROMISING_SHARE` of the penalty ``cost``."""
+    :data:`PROMISING_SHARE` of the penalty ``cost_of(first)``."""
     every = np.arange(len(engine.positions))
     passes = engine.passes
     if not passes.staged:
         return every
+    cost = cost_of(first)
     others = np.setdiff1d(every, first.active)
     with np.errstate(all="ignore"):
         blocks = passes.sensitivities(first.theta, first.X0, passes.segments(first.starts), first.w, first.ar)
@@ -194,9 +196,9 @@ def _promising(engine: Engine, first, cost: float) -> np.ndarray:
 
 
 def _select(engine: Engine, first, alpha: np.ndarray, cost_of, twins: dict | None, rule: SelectionRule):
-    every = _promising(engine, first, cost_of(first))
+    every = _promising(engine, first, cost_of)
     sol = first
-    if every.size > engine.base.size:
+    if np.setdiff1d(every, first.active).size:  # candidates to try beyond the fitted structure
         sol = _extended(engine, first, every, alpha)
         if sol is None:  # a candidate that makes the model run away: keep the fitted structure
             return first, cost_of(first)
@@ -276,7 +278,8 @@ def _prune(
 
 
 def _extended(engine: Engine, first, every: np.ndarray, alpha: np.ndarray):
-    """The fit of the structure with every candidate, on ``first``'s segments (so that the evidences compare).
+    """The fit of the structure with the candidates ``every`` (see :func:`_promising`), on ``first``'s segments (so
+    that the evidences compare).
 
     By continuation from short segments: started at ``first``'s optimum on its long segments, a candidate
     that should take over a term's role (``v`` for ``sin(v)``) needs a large move of every coefficient

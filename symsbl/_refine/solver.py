@@ -104,6 +104,7 @@ class Solution:
     w: np.ndarray
     alpha: np.ndarray
     posterior: Posterior
+    #: The Gauss-Newton blocks of the last pass (zero outside ``active`` when the pass carried only those).
     H: np.ndarray
     #: The indices of the coefficients fitted (the others held where they started).
     active: np.ndarray

@@ -74,7 +74,8 @@ class RVM:
     noise_floor : float, default 1e-6
         Floor on the estimated noise variance as a fraction of ``var(y)``.
     max_iter : int, default 10000
-        Maximum number of add / delete / re-estimate steps.
+        Maximum number of add / delete / re-estimate steps. With a penalty, the unpenalised optimum it starts
+        from gets at most half of them.
     free : sequence of int, default ()
         Columns that are always kept (e.g. a bias).
     prune_nats : float, str or None, default "ebic"
