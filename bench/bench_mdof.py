@@ -147,10 +147,11 @@ def observed(n: int, measured: str = "all"):
     its states, and the cubic springs."""
     system, record, springs, clean = system_and_record(n)
     names = [str(s) for s in system.states]
+    pairs = ",".join(f"x{i + 1}:v{i + 1}" for i in range(n))
     if measured == "all":
-        return system, record, dict(kinematics=",".join(f"x{i + 1}:v{i + 1}" for i in range(n))), springs
+        return system, record, dict(kinematics=pairs), springs
     if measured == "positions":
-        columns, labels, kinematics = record.states[:, :n], names[:n], ",".join(f"x{i + 1}:v{i + 1}" for i in range(n))
+        columns, labels, kinematics = record.states[:, :n], names[:n], pairs
     else:
         accel = np.asarray(system.evaluate_rhs(clean.states, clean.inputs))[:, n:]
         rng = np.random.default_rng(0)

@@ -75,12 +75,12 @@ def gains(S: np.ndarray, g: np.ndarray, base: np.ndarray, alpha_base: np.ndarray
     return np.where(info > 1e-10 * scale, 0.5 * score**2 / np.maximum(info, 1e-300), 0.0)
 
 
-def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, others: np.ndarray) -> np.ndarray:
+def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, others: np.ndarray) -> np.ndarray | None:
     """The gain (nats) of adding each coefficient of ``others`` to those of ``base`` (prior precisions
-    ``alpha_base``), from the blocks of one pass of ``npar`` coefficients (see the module text); zeros when the
+    ``alpha_base``), from the blocks of one pass of ``npar`` coefficients (see the module text); None when the
     blocks are not finite."""
     if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
-        return np.zeros(len(others))
+        return None
     S, gr = _reduced(blocks.H, blocks.g, npar)
     return gains(S, gr, base, alpha_base, others)
 
@@ -125,12 +125,10 @@ def screen_terms(engine_of, model, records, solution, base_engine, library, thre
         X0 = main.simulate(solution.theta, solution.X0, main.segments(solution.starts))[origin[starts]]
         w = np.atleast_2d(solution.w)[[k for k, _, _ in plan]]  # each window at its record's noise
         blocks = passes.sensitivities(theta, X0, passes.segments(starts), w, solution.ar)
-    H, g = blocks.H, blocks.g
-    if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(H)) and np.all(np.isfinite(g))):
-        return {}
-    S, gr = _reduced(H, g, theta.size)
     others = np.setdiff1d(np.arange(theta.size), engine.base)
-    found = gains(S, gr, engine.base, solution.alpha[base_engine.base], others)
+    found = score_gains(blocks, theta.size, engine.base, solution.alpha[base_engine.base], others)
+    if found is None or not np.all(np.isfinite(X0)):
+        return {}
     limit = threshold(int(passes.n_obs.sum()))
     out: dict[str, list[str]] = {}
     for k, gain in sorted(zip(others, found), key=lambda kv: -kv[1]):

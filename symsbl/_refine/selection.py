@@ -192,6 +192,8 @@ def _promising(engine: Engine, first, cost_of) -> np.ndarray:
     with np.errstate(all="ignore"):
         blocks = passes.sensitivities(first.theta, first.X0, passes.segments(first.starts), first.w, first.ar)
         found = score_gains(blocks, first.theta.size, first.active, first.alpha[first.active], others)
+    if found is None:  # the pass ran away: no candidate is scored
+        return first.active
     return np.union1d(first.active, others[found >= PROMISING_SHARE * cost])
 
 

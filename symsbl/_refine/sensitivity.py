@@ -117,7 +117,7 @@ def sensitivity_step(
 
 def _columns(param: Parameterisation, columns) -> list[int] | None:
     """The coefficients a step differentiates: ``columns`` (indices into ``theta``), None for all."""
-    if columns is None or len(columns) == param.n_free and list(columns) == list(range(param.n_free)):
+    if columns is None or list(columns) == list(range(param.n_free)):
         return None
     return [int(c) for c in columns]
 
