@@ -318,7 +318,9 @@ def _print_identified(args, model, records, library) -> None:
     """Print the identified model with its diagnosis, and write ``--json`` and ``--plot``."""
     estimator = model.metadata.get("estimator", {})
     how = (
-        "output error (refined)"
+        "output error on the equation error's structure (the input is noisy: error bars widened by refits)"
+        if estimator.get("input_noise")
+        else "output error (refined)"
         if model.fit.value == "output-error"
         else "equation error (output error is biased here)"
         if estimator.get("used") == "equation-error"

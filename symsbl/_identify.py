@@ -15,19 +15,21 @@ measured ``x1``. Columns are normalised only inside the RVM.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
-from ._base.errors import DataError, ParameterError, expected
+from ._base.errors import DataError, ParameterError, RefineWarning, expected
 from ._base.rule import SelectionRule
 from ._data.trajectory import Trajectory, noise_levels
 from ._derivatives.kinematics import complete_states, kinematic_triples, latent_states, velocity_noise
 from ._latent import Fitting, identify_latent
 from ._model import FitMethod, IdentifiedModel
 from ._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
-from ._refine import refine_or_keep
-from ._refine.options import RefineOptions, requested
+from ._refine import refine, refine_or_keep
+from ._refine.inputnoise import DRAWS, input_noise_covariance, widened
+from ._refine.options import RefineOptions, as_options, requested
 from ._regression.fit import fit_stats, selection_rule
 from ._regression.ladder import as_ladder, climb
 from ._regression.path import validated_equations
@@ -198,7 +200,7 @@ def identify(
         return model
     refined = refine_or_keep(model, trajectories, library=problem.library, options=options, selection=rule)
     estimated = _estimated(trajectories, completed, unmeasured, pairs, columns, present)
-    return _reported(model, refined, completed, problem, rvm, rule, estimated=estimated)
+    return _reported(model, refined, completed, problem, rvm, rule, estimated=estimated, fitted=(trajectories, options))
 
 
 #: The largest relative noise of a velocity estimated from its position for the equation error on it to be
@@ -260,16 +262,28 @@ def _check_latent(latent, accelerations: dict, algebraic: tuple, derivative, opt
 
 
 def _reported(
-    start: IdentifiedModel, refined: IdentifiedModel, records, problem, rvm, rule: SelectionRule, estimated: bool
+    start: IdentifiedModel,
+    refined: IdentifiedModel,
+    records,
+    problem,
+    rvm,
+    rule: SelectionRule,
+    estimated: bool,
+    fitted: tuple = ((), None),
 ) -> IdentifiedModel:
     """The output error's model, or, where its likelihood does not hold (:func:`symsbl._refine.diagnostics.doubts`:
     process or input noise, a closed loop), the equation error's with each equation's structure validated by
-    cross-validation (:mod:`symsbl._regression.path`); ``metadata["estimator"]`` says which and why."""
+    cross-validation (:mod:`symsbl._regression.path`); where the one doubt is noise on a measured input, the
+    output error's fit of that structure with its covariance widened by refits (:mod:`symsbl._refine.inputnoise`).
+    ``fitted``: the records and options the refinement had. ``metadata["estimator"]`` says which and why."""
     info = refined.metadata.get("refine", {}) if refined.fit is FitMethod.OUTPUT_ERROR else {}
     doubts = info.get("doubts", [])
     used = {"used": refined.fit.value, "doubts": doubts}
     doubted = bool(doubts) and info.get("adapted", True)
+    noisy = bool(info.get("input_noise")) and not info.get("closed_loop")
     if not doubted or estimated:  # a rough reconstruction would bias the equation error
+        if noisy and doubted:
+            return _widened(refined, refined, fitted, used)
         return dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
     template = RVM(**dict((rvm or RVM()).get_params(), prune_nats=rule.penalty))
     alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
@@ -289,7 +303,40 @@ def _reported(
     )
     model, path = validated_equations(start, problem, folds, template, rule, again.stats)
     meta = dict(start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated="yes"))
-    return dataclasses.replace(model, metadata=meta, path=path)
+    model = dataclasses.replace(model, metadata=meta, path=path)
+    if noisy:  # output error is precise here, and the refits make its posterior honest
+        return dataclasses.replace(_widened(model, refined, fitted, used), path=path)
+    return model
+
+
+def _widened(structure: IdentifiedModel, refined: IdentifiedModel, fitted: tuple, used: dict) -> IdentifiedModel:
+    """The output error's fit of ``structure`` (``refined`` where that is its structure) on ``fitted`` (the
+    records and options of the refinement), its covariance widened by refits with each measured input's noise
+    drawn again; the equation error's coefficients, where ``structure`` is its model, kept in
+    ``metadata["estimator"]["equation_error"]``."""
+    records, options = fitted
+    once = dataclasses.replace(as_options(options), select=False, doubts="report")
+
+    def refit(recs, model):
+        with warnings.catch_warnings():  # the doubts are the first fit's, reported once
+            warnings.simplefilter("ignore", RefineWarning)
+            return refine(model, recs, options=once)
+
+    same = structure.fit is FitMethod.OUTPUT_ERROR or _names(structure) == _names(refined)
+    fit = refined if same else refit(records, structure)
+    levels = [{n: lv[n] for n in r.input_names} for r in records for lv in [noise_levels(r)]]
+    extra = input_noise_covariance(fit, records, levels, lambda recs: refit(recs, fit))
+    estimator = dict(used, used="output-error", input_noise={"draws": DRAWS, "levels": levels})
+    if structure.fit is not FitMethod.OUTPUT_ERROR:
+        ee = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in structure.equations if not eq.fixed}
+        estimator = dict(estimator, structure="equation-error, validated", equation_error=ee)
+        estimator.pop("output_error", None)
+    model = widened(fit, extra)
+    return dataclasses.replace(model, metadata=dict(model.metadata, estimator=estimator))
+
+
+def _names(model: IdentifiedModel) -> tuple:
+    return tuple(tuple(sorted(eq.names)) for eq in model.equations)
 
 
 def _algebraic(outputs) -> tuple[str, ...]:

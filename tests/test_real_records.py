@@ -12,6 +12,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 from reference_oscillator import COULOMB, HARDENING, closed_loop, library, record
 
@@ -72,12 +73,12 @@ def test_displacement_only_process_noise_keeps_output_error_on_short_segments():
 
 
 @pytest.mark.slow
-def test_a_noisy_force_cell_is_named_and_the_equation_error_reported_without_look_alikes():
+def test_a_noisy_force_cell_is_named_and_its_structure_taken_from_the_equation_error():
     """The cubic oscillator with Coulomb friction at 1200 Hz, 0.7 % noise on x and v and 1 % on the force (12 s),
-    three seeds: the errors in variables are named and the equation error's model reported, never with a
-    look-alike (``sin(v)`` for ``v``, a spurious ``v x**2``: whole-record output error's failure); Coulomb friction
-    (3 % of the force's rms) is kept in at least two of the three, and where the support is exact every
-    coefficient is within 4 posterior standard deviations."""
+    three seeds: the errors in variables are named, the structure is the equation error's, validated, never with
+    a look-alike (``sin(v)`` for ``v``, a spurious ``v x**2``: whole-record output error's failure), and its
+    coefficients are output error's; Coulomb friction (3 % of the force's rms) is kept in at least two of the
+    three, and where the support is exact every coefficient is within 4 posterior standard deviations."""
     exact = 0
     for seed in range(3):
         train = record(
@@ -88,13 +89,39 @@ def test_a_noisy_force_cell_is_named_and_the_equation_error_reported_without_loo
             model = symsbl.identify(train, library())
         assert any("the measured input is noisy" in str(w.message) for w in caught), [str(w.message) for w in caught]
         assert model.metadata["refine"]["input_noise"]
-        assert model.metadata["estimator"]["used"] == "equation-error"
+        estimator = model.metadata["estimator"]
+        assert estimator["used"] == "output-error" and estimator["structure"] == "equation-error, validated"
         names = model.equation("v").names
+        assert sorted(estimator["equation_error"]["v"]) == sorted(names)
         assert set(names) <= set(COULOMB.truth()), names
         if "sign(v)" in names:
             exact += 1
             _check_truth(model, COULOMB.truth())
     assert exact >= 2, exact
+
+
+@pytest.mark.slow
+def test_two_percent_noise_on_the_force_gives_coefficients_within_one_percent_and_honest_deviations():
+    """The hardening oscillator with 2 % white noise on the measured force, six seeds: the true support every
+    time, every coefficient within 1 % of the truth, and z-scores of spread 0.6-1.5 (the refits' covariance;
+    output error's own posterior gave a spread of 7.4 and |z| up to 22). The equation error's coefficients, which
+    the same records gave up to 7.7 % off, are further from the truth (root mean square over the seeds)."""
+    truth = HARDENING.truth()
+    zs, errors, ee_errors = [], [], []
+    for seed in range(6):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", symsbl.RefineWarning)
+            model = symsbl.identify(record(HARDENING, 1000 + seed, force_noise=0.02), library())
+        eq = model.equation("v")
+        assert sorted(eq.names) == sorted(truth), eq.names
+        ee = model.metadata["estimator"]["equation_error"]["v"]
+        for name, value in truth.items():
+            errors.append((eq.coef(name) - value) / value)
+            zs.append((eq.coef(name) - value) / eq.stds[eq.names.index(name)])
+            ee_errors.append((ee[name][0] - value) / value)
+    assert max(abs(e) for e in errors) < 0.01, errors
+    assert 0.6 < float(np.std(zs)) < 1.5, zs
+    assert np.sqrt(np.mean(np.square(errors))) < np.sqrt(np.mean(np.square(ee_errors))), (errors, ee_errors)
 
 
 @pytest.mark.slow

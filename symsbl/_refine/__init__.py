@@ -276,22 +276,7 @@ def _warn(meta: dict) -> None:
             )
         return
     if meta["biased"]:
-        what = " and ".join(
-            w
-            for w, on in (
-                ("the record looks closed-loop", meta["closed_loop"]),
-                ("the measured input is noisy", meta["input_noise"]),
-            )
-            if on
-        )
-        warnings.warn(
-            RefineWarning(
-                f"output-error refinement: {what}, where output error is biased, so no term was "
-                "selected on its evidence (identify reports the equation error's model where every "
-                "state is measured or finely estimated): " + "; ".join(meta["doubts"])
-            ),
-            stacklevel=3,
-        )
+        warnings.warn(RefineWarning(_biased(meta)), stacklevel=3)
         return
     if meta["doubts"]:
         warnings.warn(
@@ -321,6 +306,29 @@ def _warn(meta: dict) -> None:
             ),
             stacklevel=3,
         )
+
+
+def _biased(meta: dict) -> str:
+    """The warning of a fit whose output error is biased (a closed loop, a noisy input): what identify reports."""
+    what = " and ".join(
+        w
+        for w, on in (
+            ("the record looks closed-loop", meta["closed_loop"]),
+            ("the measured input is noisy", meta["input_noise"]),
+        )
+        if on
+    )
+    reported = (
+        "the equation error's model"
+        if meta["closed_loop"]
+        else "the equation error's structure with output error's coefficients, their covariance widened by "
+        "refits with the input's noise drawn again"
+    )
+    return (
+        f"output-error refinement: {what}, where output error is biased, so no term was selected on its evidence "
+        f"(where every state is measured or finely estimated, identify reports {reported}): "
+        + "; ".join(meta["doubts"])
+    )
 
 
 #: Rounds of screening and selection at most when a state is not measured.
