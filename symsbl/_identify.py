@@ -20,7 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ._base.errors import DataError, ParameterError, RefineWarning, expected
+from ._base.errors import DataError, ParameterError, RefineWarning, SimulationError, expected
 from ._base.rule import SelectionRule
 from ._data.trajectory import Trajectory, noise_levels
 from ._derivatives.kinematics import complete_states, kinematic_triples, latent_states, velocity_noise
@@ -28,7 +28,8 @@ from ._latent import Fitting, identify_latent
 from ._model import FitMethod, IdentifiedModel
 from ._model.outputs import AccelerationOutput, AlgebraicOutput, state_outputs
 from ._refine import refine, refine_or_keep
-from ._refine.inputnoise import DRAWS, input_noise_covariance, widened
+from ._refine.diagnostics import noisy_input_names
+from ._refine.inputnoise import AGREEMENT, DRAWS, disagreement, input_noise_covariance, widened
 from ._refine.options import RefineOptions, as_options, requested
 from ._regression.fit import fit_stats, selection_rule
 from ._regression.ladder import as_ladder, climb
@@ -273,7 +274,7 @@ def _reported(
 ) -> IdentifiedModel:
     """The output error's model, or, where its likelihood does not hold (:func:`symsbl._refine.diagnostics.doubts`:
     process or input noise, a closed loop), the equation error's with each equation's structure validated by
-    cross-validation (:mod:`symsbl._regression.path`); where the one doubt is noise on a measured input, the
+    cross-validation (:mod:`symsbl._regression.path`); where a measured input is noisy and the loop open, the
     output error's fit of that structure with its covariance widened by refits (:mod:`symsbl._refine.inputnoise`).
     ``fitted``: the records and options the refinement had. ``metadata["estimator"]`` says which and why."""
     info = refined.metadata.get("refine", {}) if refined.fit is FitMethod.OUTPUT_ERROR else {}
@@ -282,9 +283,8 @@ def _reported(
     doubted = bool(doubts) and info.get("adapted", True)
     noisy = bool(info.get("input_noise")) and not info.get("closed_loop")
     if not doubted or estimated:  # a rough reconstruction would bias the equation error
-        if noisy and doubted:
-            return _widened(refined, refined, fitted, used)
-        return dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
+        out = _widened(refined, refined, fitted, used) if noisy and doubted else None
+        return out or dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
     template = RVM(**dict((rvm or RVM()).get_params(), prune_nats=rule.penalty))
     alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
     used = dict(used, used="equation-error", output_error=alternative)
@@ -305,15 +305,28 @@ def _reported(
     meta = dict(start.metadata, refine=refined.metadata.get("refine", {}), estimator=dict(used, validated="yes"))
     model = dataclasses.replace(model, metadata=meta, path=path)
     if noisy:  # output error is precise here, and the refits make its posterior honest
-        return dataclasses.replace(_widened(model, refined, fitted, used), path=path)
+        out = _widened(model, refined, fitted, used)
+        if out is None:  # the output error's fit of the structure ran away: the equation error's model stands
+            return model
+        stat, level = disagreement(model, out)
+        if stat <= level:
+            return dataclasses.replace(out, path=path)
+        line = (
+            f"the equation error's and output error's coefficients disagree beyond their errors (chi-square "
+            f"{stat:.3g} against {level:.3g} at {100 * AGREEMENT:g} %): the structure lacks a term the record hides "
+            "from output error, so the equation error's model is reported"
+        )
+        warnings.warn(RefineWarning(line), stacklevel=3)
+        estimator = dict(meta["estimator"], doubts=list(doubts) + [line], disagreement=[stat, level])
+        return dataclasses.replace(model, metadata=dict(meta, estimator=estimator))
     return model
 
 
-def _widened(structure: IdentifiedModel, refined: IdentifiedModel, fitted: tuple, used: dict) -> IdentifiedModel:
+def _widened(structure: IdentifiedModel, refined: IdentifiedModel, fitted: tuple, used: dict):
     """The output error's fit of ``structure`` (``refined`` where that is its structure) on ``fitted`` (the
-    records and options of the refinement), its covariance widened by refits with each measured input's noise
+    records and options of the refinement), its covariance widened by refits with each noisy input's noise
     drawn again; the equation error's coefficients, where ``structure`` is its model, kept in
-    ``metadata["estimator"]["equation_error"]``."""
+    ``metadata["estimator"]["equation_error"]``. None where the fit or too many refits run away."""
     records, options = fitted
     once = dataclasses.replace(as_options(options), select=False, doubts="report")
 
@@ -323,16 +336,25 @@ def _widened(structure: IdentifiedModel, refined: IdentifiedModel, fitted: tuple
             return refine(model, recs, options=once)
 
     same = structure.fit is FitMethod.OUTPUT_ERROR or _names(structure) == _names(refined)
-    fit = refined if same else refit(records, structure)
-    levels = [{n: lv[n] for n in r.input_names} for r in records for lv in [noise_levels(r)]]
+    try:
+        fit = refined if same else refit(records, structure)
+    except (SimulationError, np.linalg.LinAlgError):
+        return None
+    noisy = noisy_input_names(records, refined.measured_names, refined.input_names)
+    levels = [{n: lv[n] for n in noisy} for r in records for lv in [noise_levels(r)]]
     extra = input_noise_covariance(fit, records, levels, lambda recs: refit(recs, fit))
+    if extra is None:
+        return None
     estimator = dict(used, used="output-error", input_noise={"draws": DRAWS, "levels": levels})
     if structure.fit is not FitMethod.OUTPUT_ERROR:
         ee = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in structure.equations if not eq.fixed}
         estimator = dict(estimator, structure="equation-error, validated", equation_error=ee)
         estimator.pop("output_error", None)
     model = widened(fit, extra)
-    return dataclasses.replace(model, metadata=dict(model.metadata, estimator=estimator))
+    first = refined.metadata.get("refine", {})  # the doubts and their adaptation are the first fit's
+    kept = {k: first[k] for k in ("doubts", "closed_loop", "input_noise", "biased", "adapted") if k in first}
+    refine_meta = dict(model.metadata.get("refine", {}), **kept)
+    return dataclasses.replace(model, metadata=dict(model.metadata, refine=refine_meta, estimator=estimator))
 
 
 def _names(model: IdentifiedModel) -> tuple:

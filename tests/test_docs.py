@@ -250,6 +250,7 @@ DOUBTS_PRINTED = (
     "the residual depends on the input",
     "the record looks closed-loop",
     "the measured input is noisy",
+    "coefficients disagree beyond their errors",
     "the residual is not measurement noise the noise model describes",
     "its likelihood is doubtful here",
     "the record is hypersensitive (chaotic-like)",

@@ -80,3 +80,40 @@ def test_a_widened_model_carries_the_sum_in_every_place(model):
     np.testing.assert_allclose(eq.stds, np.sqrt(np.diag(total)[k:]))
     assert out.equations[0] == fitted.equations[0]
     assert [t.coef for t in eq.terms] == [t.coef for t in fitted.equations[-1].terms]
+
+
+def test_the_disagreement_of_two_fits_is_their_difference_over_their_covariances(model):
+    """Two fits of one structure whose first coefficient differs by d, each with covariance C: the statistic is
+    d^2 (C^-1)_11 / 2, against the chi-square quantile at 99 % of as many degrees of freedom as terms."""
+    from scipy.stats import chi2
+
+    from symsbl._refine.inputnoise import disagreement
+
+    fitted, _ = model
+    eq = fitted.equations[-1]
+    d = 3.0 * eq.stds[0]
+    stat, level = disagreement(fitted, _with_coef(fitted, eq.terms[0].coef + d))
+    assert stat == pytest.approx(d**2 * np.linalg.inv(eq.covariance)[0, 0] / 2, rel=1e-9)
+    assert level == pytest.approx(chi2.ppf(0.99, len(eq.terms)))
+    assert disagreement(fitted, fitted)[0] == 0.0
+
+
+def test_a_draw_that_runs_away_is_left_out_and_too_many_give_none(model):
+    """Refits that raise SimulationError on every other draw: the covariance of the rest (the refit's value of
+    the noisy input's mean, as above); on every draw: None, so that identify keeps the equation error's model."""
+    fitted, record = model
+    calls = []
+
+    def flaky(every):
+        def refit(records):
+            calls.append(1)
+            if len(calls) % every == 0:
+                raise symsbl.SimulationError("ran away")
+            return _with_coef(fitted, records[0].column("F").mean())
+
+        return refit
+
+    cov = input_noise_covariance(fitted, [record], [{"F": 0.3}], flaky(2), draws=400, seed=1)
+    first = len(fitted.equations[0].terms)
+    assert cov[first, first] == pytest.approx(0.3**2 / record.n_samples, rel=0.2)
+    assert input_noise_covariance(fitted, [record], [{"F": 0.3}], flaky(1), draws=4) is None

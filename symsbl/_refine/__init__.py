@@ -321,8 +321,8 @@ def _biased(meta: dict) -> str:
     reported = (
         "the equation error's model"
         if meta["closed_loop"]
-        else "the equation error's structure with output error's coefficients, their covariance widened by "
-        "refits with the input's noise drawn again"
+        else "the equation error's structure (elsewhere the one fitted) with output error's coefficients, their "
+        "covariance widened by refits with the input's noise drawn again"
     )
     return (
         f"output-error refinement: {what}, where output error is biased, so no term was selected on its evidence "

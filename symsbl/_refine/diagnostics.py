@@ -45,7 +45,16 @@ from .._data.excitation import aperiodic_part, period, predicted, relative_noise
 from .._data.residuals import ResidualTest, explained_out_of_sample, ljung_box, residual_test
 from .noise import innovations
 
-__all__ = ["residual_tests", "as_record", "doubts", "noisy_inputs", "loop_possible", "Doubts", "INPUT_NOISE"]
+__all__ = [
+    "residual_tests",
+    "as_record",
+    "doubts",
+    "noisy_inputs",
+    "noisy_input_names",
+    "loop_possible",
+    "Doubts",
+    "INPUT_NOISE",
+]
 
 #: A measured input's relative noise (white-noise level over its spread) above this share of the outputs'
 #: smallest relative noise flags errors in variables.
@@ -296,18 +305,27 @@ def noisy_inputs(records, measured, inputs) -> tuple[str, ...]:
     outputs' smallest (errors in variables), one line each: a property of the data, not of a fit. Outputs whose
     noise the record does not resolve (:data:`~symsbl._data.excitation.RESOLVED`) are left out; with none left,
     no input is flagged."""
+    floor, flagged = _noisy(records, measured, inputs)
+    return tuple(
+        f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
+        f"{100 * floor:.2g} % on the outputs): errors in variables"
+        for name, level in flagged.items()
+    )
+
+
+def noisy_input_names(records, measured, inputs) -> tuple[str, ...]:
+    """The names of the inputs :func:`noisy_inputs` flags."""
+    return tuple(_noisy(records, measured, inputs)[1])
+
+
+def _noisy(records, measured, inputs) -> tuple[float, dict]:
+    """The outputs' smallest relative noise and ``{input: its relative noise}`` of the inputs above
+    :data:`INPUT_NOISE` of it."""
     periods = [period(r.inputs) if r.inputs.size else None for r in records]
     outputs = [relative_noise([r.column(m) for r in records], periods) for m in measured]
     floor = min((o for o in outputs if np.isfinite(o)), default=0.0)
-    reasons = []
-    for name in inputs:
-        level = relative_noise([r.column(name) for r in records], periods)
-        if floor > 0 and level > INPUT_NOISE * floor:
-            reasons.append(
-                f"the measured input {name} carries noise ({100 * level:.2g} % of its spread, against "
-                f"{100 * floor:.2g} % on the outputs): errors in variables"
-            )
-    return tuple(reasons)
+    levels = {name: relative_noise([r.column(name) for r in records], periods) for name in inputs}
+    return floor, {n: lv for n, lv in levels.items() if floor > 0 and lv > INPUT_NOISE * floor}
 
 
 def doubts(tests: list[ResidualTest], noisy: tuple[str, ...] = ()) -> Doubts:
