@@ -202,14 +202,32 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
     fits = {"evidence": _fit(engine, engine.base, theta0, alpha, warm=union)}
     ee = _positions(engine, start)
     same = fits["evidence"] is not None and set(ee) == set(engine.base.tolist())  # entered once, as the evidence's
-    if ee and not same:  # from the equation error's own coefficients, by continuation: the union's have other terms
+    if ee and not same:  # from the union reduced to it; where that runs away, by continuation from its own start
         own = theta0.copy()
         for k in ee:
             i, j = engine.positions[k]
             eq = engine.full.equations[i]
             own[k] = by_name[(eq.lhs, eq.terms[j].name)]
-        fits["equation error"] = _fit(engine, ee, own, alpha)
+        fits["equation error"] = _reduced(engine, union, ee, alpha) or _fit(engine, ee, own, alpha)
     return union, fits
+
+
+def _reduced(engine: Engine, sol, active, alpha: np.ndarray):
+    """The fit of the sub-structure ``active`` of ``sol``, started from ``sol``'s posterior with the other
+    coefficients switched off by Bayesian model reduction (None: not a sub-structure, or the fit runs away)."""
+    whole = [int(k) for k in sol.active]
+    wanted = set(int(k) for k in active)
+    if not wanted <= set(whole):
+        return None
+    off = [n for n, k in enumerate(whole) if k not in wanted]
+    try:
+        _, mean, _ = reduce_model(sol.posterior, sol.alpha[sol.active], off)
+    except np.linalg.LinAlgError:
+        return None
+    keep = [k for k in whole if k in wanted]
+    start = np.zeros_like(sol.theta)
+    start[keep] = mean
+    return _fit(engine, keep, start, alpha, warm=sol)
 
 
 def _scored(engine: Engine, union, fits: dict, alpha, cv) -> list:
