@@ -286,8 +286,7 @@ def _reported(
         out = _widened(refined, refined, fitted, used) if noisy and doubted else None
         return out or dataclasses.replace(refined, metadata=dict(refined.metadata, estimator=used))
     template = RVM(**dict((rvm or RVM()).get_params(), prune_nats=rule.penalty))
-    alternative = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in refined.equations if not eq.fixed}
-    used = dict(used, used="equation-error", output_error=alternative)
+    used = dict(used, used="equation-error", output_error=_coefficients(refined))
     try:
         folds = [
             regression_stats(piece, problem.library, derivative=problem.derivative, **problem.targets).stats
@@ -347,14 +346,18 @@ def _widened(structure: IdentifiedModel, refined: IdentifiedModel, fitted: tuple
         return None
     estimator = dict(used, used="output-error", input_noise={"draws": DRAWS, "levels": levels})
     if structure.fit is not FitMethod.OUTPUT_ERROR:
-        ee = {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in structure.equations if not eq.fixed}
-        estimator = dict(estimator, structure="equation-error, validated", equation_error=ee)
+        estimator = dict(estimator, structure="equation-error, validated", equation_error=_coefficients(structure))
         estimator.pop("output_error", None)
     model = widened(fit, extra)
     first = refined.metadata.get("refine", {})  # the doubts and their adaptation are the first fit's
     kept = {k: first[k] for k in ("doubts", "closed_loop", "input_noise", "biased", "adapted") if k in first}
     refine_meta = dict(model.metadata.get("refine", {}), **kept)
     return dataclasses.replace(model, metadata=dict(model.metadata, refine=refine_meta, estimator=estimator))
+
+
+def _coefficients(model: IdentifiedModel) -> dict:
+    """``{lhs: {term: [coef, std]}}`` of the fitted equations, as ``metadata["estimator"]`` records another fit."""
+    return {eq.lhs: {t.name: [t.coef, t.std] for t in eq.terms} for eq in model.equations if not eq.fixed}
 
 
 def _names(model: IdentifiedModel) -> tuple:

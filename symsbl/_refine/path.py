@@ -203,13 +203,20 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
     ee = _positions(engine, start)
     same = fits["evidence"] is not None and set(ee) == set(engine.base.tolist())  # entered once, as the evidence's
     if ee and not same:  # from the union reduced to it; where that runs away, by continuation from its own start
-        own = theta0.copy()
-        for k in ee:
-            i, j = engine.positions[k]
-            eq = engine.full.equations[i]
-            own[k] = by_name[(eq.lhs, eq.terms[j].name)]
-        fits["equation error"] = _reduced(engine, union, ee, alpha) or _fit(engine, ee, own, alpha)
+        fits["equation error"] = _reduced(engine, union, ee, alpha) or _fit(
+            engine, ee, _own(engine, ee, theta0, by_name), alpha
+        )
     return union, fits
+
+
+def _own(engine: Engine, active, theta0: np.ndarray, by_name: dict) -> np.ndarray:
+    """``theta0`` with the coefficients ``active`` at the equation error's values."""
+    own = theta0.copy()
+    for k in active:
+        i, j = engine.positions[k]
+        eq = engine.full.equations[i]
+        own[k] = by_name[(eq.lhs, eq.terms[j].name)]
+    return own
 
 
 def _reduced(engine: Engine, sol, active, alpha: np.ndarray):
