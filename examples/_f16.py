@@ -198,6 +198,28 @@ def score(model: IdentifiedModel, rec: Record) -> np.ndarray:
     return np.sqrt(np.mean(error**2, axis=1))
 
 
+def floors(rec: Record) -> tuple[np.ndarray, np.ndarray]:
+    """What a model of the band cannot be expected to reproduce, per acceleration, in % of its RMS (periods 2-9).
+
+    The first, the part that does not repeat from period to period (noise, and a response that is not
+    periodic): no deterministic model driven by a periodic force predicts it. It is the RMS of each
+    period's deviation from the mean period, unbiased for the mean's own share (``n / (n - 1)`` over
+    ``n`` periods). The second, the mean period's content outside the excited band: the harmonics that a
+    nonlinearity throws out of the band (and drift below it), which a model of the band's linear
+    dynamics does not produce.
+    """
+    periods = rec.force.size // PERIOD - 1
+    if periods < 2:
+        raise ValueError(f"{periods + 1} periods, where the floors need three or more")
+    y = rec.acc[:, PERIOD : (periods + 1) * PERIOD].reshape(rec.acc.shape[0], periods, PERIOD)
+    mean = y.mean(axis=1)
+    varying = np.sqrt(np.sum((y - mean[:, None]) ** 2, axis=(1, 2)) / ((periods - 1) * PERIOD))
+    spectrum = np.fft.rfft(mean, axis=-1)
+    spectrum[:, excited(rec.fs)] = 0.0
+    outside = np.sqrt(np.mean(np.fft.irfft(spectrum, PERIOD, axis=-1) ** 2, axis=1))
+    return 100 * varying / rms(rec), 100 * outside / rms(rec)
+
+
 def format_scores(errors, rec: Record) -> str:
     return "   ".join(f"{a} {e:.4f} m/s^2 ({100 * e / r:.1f} %)" for a, e, r in zip(ACCELERATIONS, errors, rms(rec)))
 
@@ -207,4 +229,18 @@ def score_table(model: IdentifiedModel, rec: Record) -> str:
     return "\n".join(
         f"  Acceleration{j + 1}: {e:.4f} m/s^2 ({100 * e / r:.2f} % of its RMS {r:.4f} m/s^2)"
         for j, (e, r) in enumerate(zip(score(model, rec), rms(rec)))
+    )
+
+
+def floor_lines(rec: Record) -> str:
+    """The record's :func:`floors` as two lines (empty for a record of fewer than three periods)."""
+    if rec.force.size // PERIOD < 3:
+        return ""
+    varying, outside = floors(rec)
+    cells = ", ".join
+    return (
+        f"  not repeated from period to period (no model predicts it): "
+        f"{cells(f'a{j + 1} {v:.1f} %' for j, v in enumerate(varying))}\n"
+        f"  outside {BAND[0]:g}-{BAND[1]:g} Hz (harmonics of the nonlinearity, drift): "
+        f"{cells(f'a{j + 1} {v:.1f} %' for j, v in enumerate(outside))}"
     )

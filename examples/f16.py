@@ -26,7 +26,9 @@ Usage::
     python examples/f16.py --identify           # identify again (about 12 minutes of CPU) and save
 
 Scoring: free-run simulation from the measured force alone, all nine periods, the error RMS over
-periods 2-9 per acceleration, in m/s^2 and in % of that acceleration's RMS.
+periods 2-9 per acceleration, in m/s^2 and in % of that acceleration's RMS. Under the scores, the
+record's own floors in %: the part that does not repeat from period to period, which no model
+predicts, and the content outside the excited band (harmonics of the nonlinearity, drift).
 
 Data: ``shared/data/F16GVT`` next to this repository (the benchmark's .mat files); ``--validate``
 reads the benchmark's CSV layout (columns Force, Voltage, Acceleration1, Acceleration2,
@@ -81,6 +83,9 @@ def validate(model, names) -> int:
         periods = f"{record.force.size / _f16.PERIOD:.3g}"
         print(f"{name}: free-run error after the first of {periods} periods, force {record.force.std():.1f} N RMS")
         print(_f16.score_table(model, record))
+        floors = _f16.floor_lines(record)
+        if floors:
+            print(floors)
     return 0
 
 
@@ -98,6 +103,7 @@ def compare_on_estimation_levels() -> int:
         for kind, model in models.items():
             errors[level, kind] = _f16.score(model, record)
             print(f"  {kind:9s} " + _f16.format_scores(errors[level, kind], record))
+        print(_f16.floor_lines(record))
     for level in ESTIMATION:  # as measured when the models were saved: the nonlinear one is no worse anywhere
         assert np.all(errors[level, "nonlinear"][1:] <= errors[level, "linear"][1:]), level
     return 0
