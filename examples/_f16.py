@@ -199,14 +199,16 @@ def score(model: IdentifiedModel, rec: Record) -> np.ndarray:
 
 
 def floors(rec: Record) -> tuple[np.ndarray, np.ndarray]:
-    """What a model of the band cannot be expected to reproduce, per acceleration, in % of its RMS (periods 2-9).
+    """What a model of the band cannot be expected to reproduce, per acceleration, in % of its RMS.
 
-    The first, the part that does not repeat from period to period (noise, and a response that is not
-    periodic): no deterministic model driven by a periodic force predicts it. It is the RMS of each
-    period's deviation from the mean period, unbiased for the mean's own share (``n / (n - 1)`` over
-    ``n`` periods). The second, the mean period's content outside the excited band: the harmonics that a
-    nonlinearity throws out of the band (and drift below it), which a model of the band's linear
-    dynamics does not produce.
+    Both are taken over the whole periods after the first (periods 2-9 of a benchmark record), and in
+    % of each acceleration's RMS there. The first, the part that does not repeat from period to period
+    (noise, and a response that is not periodic): no deterministic model driven by a periodic force
+    predicts it. It is the RMS of each period's deviation from the mean period, unbiased for the mean's
+    own share (``n / (n - 1)`` over ``n`` periods). The second, the mean period's content outside the
+    excited band: the harmonics that a nonlinearity throws out of the band (and drift below it), which
+    a model of the band's linear dynamics does not produce. It still holds the noise the mean keeps,
+    ``1 / sqrt(n)`` of it, over the lines outside the band: about a third of the first at 9 periods.
     """
     periods = rec.force.size // PERIOD - 1
     if periods < 2:
@@ -217,7 +219,8 @@ def floors(rec: Record) -> tuple[np.ndarray, np.ndarray]:
     spectrum = np.fft.rfft(mean, axis=-1)
     spectrum[:, excited(rec.fs)] = 0.0
     outside = np.sqrt(np.mean(np.fft.irfft(spectrum, PERIOD, axis=-1) ** 2, axis=1))
-    return 100 * varying / rms(rec), 100 * outside / rms(rec)
+    spread = np.sqrt(np.mean(y**2, axis=(1, 2)))
+    return 100 * varying / spread, 100 * outside / spread
 
 
 def format_scores(errors, rec: Record) -> str:

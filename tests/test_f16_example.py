@@ -108,16 +108,21 @@ def test_floors_split_a_record_into_what_repeats_in_band_and_the_rest():
     rms = np.sqrt(np.mean(steady.acc[:, _f16.PERIOD :] ** 2, axis=1))
     f30 = 614 * steady.fs / _f16.PERIOD  # 30 Hz, on the period's grid
     line = 0.2 * rms[:, None] * np.sqrt(2) * np.sin(2 * np.pi * f30 * t)  # 20 % of each output's RMS
-    clean = _f16.Record(steady.force, steady.acc + line, steady.fs)
+    burst = np.zeros_like(line)
+    burst[:, : _f16.PERIOD] = 5 * line[:, : _f16.PERIOD]  # in the first period, which the floors leave out
+    clean = _f16.Record(steady.force, steady.acc + line + burst, steady.fs)
     varying, outside = _f16.floors(clean)
     total = np.sqrt(rms**2 + (0.2 * rms) ** 2)  # the line is orthogonal to the band's response
     assert varying == pytest.approx(np.zeros(3), abs=1e-9)
     assert outside == pytest.approx(100 * 0.2 * rms / total, rel=1e-6)
     noise = 0.05 * rms[:, None] * np.random.default_rng(4).standard_normal(steady.acc.shape)
-    varying, _ = _f16.floors(_f16.Record(steady.force, steady.acc + noise, steady.fs))
+    varying, outside = _f16.floors(_f16.Record(steady.force, steady.acc + noise, steady.fs))
     # 8 x 8192 samples: the estimate of the noise's RMS is within 1 % of it (its own spread is 0.3 %)
     level = 100 * 0.05 * rms / np.sqrt(rms**2 + (0.05 * rms) ** 2)
     assert varying == pytest.approx(level, rel=0.01)
+    # the mean of 8 periods keeps 1/sqrt(8) of the white noise, spread evenly over the lines
+    share = 1 - np.count_nonzero(_f16.excited(steady.fs)) / (_f16.PERIOD // 2)
+    assert outside == pytest.approx(level * np.sqrt(share / 8), rel=0.03)
     with pytest.raises(ValueError, match="three or more"):
         _f16.floors(steady_record(periods=2))
 
