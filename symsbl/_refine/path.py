@@ -71,16 +71,19 @@ def _backward(engine: Engine, sol, alpha: np.ndarray, screen: int | None = None)
         return None
     a = sol.alpha[sol.active]
     gains = {n: reduce_model(sol.posterior, a, [n])[0] for n in removable}
-    off = max(gains, key=gains.__getitem__)
-    _, mean, _ = reduce_model(sol.posterior, a, [off])
-    keep = [k for n, k in enumerate(active) if n != off]
+    keep, start = _reduction(sol, [max(gains, key=gains.__getitem__)])
+    return _fit(engine, keep, start, alpha, warm=sol, screen=screen)
+
+
+def _reduction(sol, off: list[int]) -> tuple[list[int], np.ndarray]:
+    """The coefficients of ``sol`` left when those at ``off`` (places in ``sol.active``) are switched off, and
+    their start: ``sol``'s posterior reduced by Bayesian model reduction, the others at zero."""
+    _, mean, _ = reduce_model(sol.posterior, sol.alpha[sol.active], off)
+    dropped = set(off)
+    keep = [int(k) for n, k in enumerate(sol.active) if n not in dropped]
     start = np.zeros_like(sol.theta)
     start[keep] = mean
-    try:
-        refit = engine.fit(keep, start, alpha, warm=sol, screen=screen)
-    except (SimulationError, np.linalg.LinAlgError):
-        return None
-    return refit if np.isfinite(refit.posterior.log_evidence) else None
+    return keep, start
 
 
 def _noise_floor(passes) -> float:
@@ -161,11 +164,11 @@ def _positions(engine: Engine, model: IdentifiedModel) -> list[int]:
     return out
 
 
-def _fit(engine: Engine, active, theta0: np.ndarray, alpha: np.ndarray, warm=None):
+def _fit(engine: Engine, active, theta0: np.ndarray, alpha: np.ndarray, warm=None, screen: int | None = None):
     start = np.zeros_like(theta0)
     start[active] = theta0[active]
     try:
-        sol = engine.fit(active, start, alpha, warm=warm)
+        sol = engine.fit(active, start, alpha, warm=warm, screen=screen)
     except (SimulationError, np.linalg.LinAlgError):
         return None
     return sol if np.isfinite(sol.posterior.log_evidence) else None
@@ -226,14 +229,10 @@ def _reduced(engine: Engine, sol, active, alpha: np.ndarray):
     wanted = set(int(k) for k in active)
     if not wanted <= set(whole):
         return None
-    off = [n for n, k in enumerate(whole) if k not in wanted]
     try:
-        _, mean, _ = reduce_model(sol.posterior, sol.alpha[sol.active], off)
+        keep, start = _reduction(sol, [n for n, k in enumerate(whole) if k not in wanted])
     except np.linalg.LinAlgError:
         return None
-    keep = [k for k in whole if k in wanted]
-    start = np.zeros_like(sol.theta)
-    start[keep] = mean
     return _fit(engine, keep, start, alpha, warm=sol)
 
 
