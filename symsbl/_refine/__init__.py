@@ -47,6 +47,7 @@ from .rows import design_rows, state_guess
 from .screen import screen_terms
 from .selection import select as select_terms
 from .solver import PHI_STOP
+from .swap import swap_terms
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES", "RefineOptions"]
 
@@ -98,9 +99,11 @@ def refine(
     select : bool
         Select terms on the output-error evidence (remove terms whose removal raises the evidence by
         more than ``1/2 log N + log M`` nats; add runners-up that raise it). When a state is not
-        measured, library terms are also screened by their output-error score (see *Displacement only* in the
-        output-error explanation) and the best are tried; ``metadata["refine"]["screened"]``
-        lists them.
+        measured, library terms are also screened by their output-error score (see *Displacement only* in
+        the output-error explanation) and the best are tried; ``metadata["refine"]["screened"]`` lists
+        them. Then, there or when the first fit's residual is coloured, each selected term (or pair) is
+        offered in exchange for a library term the equation's terms nearly span, and an exchange a refit
+        confirms is kept (see *Swaps* there).
     interpolation : {"cubic", "linear", "periodic"}
         How the measured input runs between samples: a cubic spline (default; a linear hold biases
         stiff, hardening systems by up to two posterior standard deviations at 16 kHz), a linear
@@ -228,20 +231,21 @@ def _options(given: RefineOptions, options) -> RefineOptions:
 def _rounds(model, used, measured, settings, select, rebased, rule) -> tuple[IdentifiedModel, int, list]:
     """The rounds of screening and selection until the structure repeats: the model, the number of rounds and
     the terms each round's screen proposed."""
-    screening = select and rebased is not None and bool(set(model.state_names) - set(measured))
+    screening = select and rebased is not None
+    hidden = screening and bool(set(model.state_names) - set(measured))
     # with a state not measured, the screen and the selection first work on short segments, where a term missing
     # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
-    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule, short=screening)
+    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule, short=hidden)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
         refined, screened = _refine_once(
-            refined, used, measured, settings, select, rebased, screening, rule, short=True
+            refined, used, measured, settings, select, rebased, screening, rule, short=hidden
         )
         proposed.append(screened)
         rounds += 1
-    if screening:
+    if hidden:
         refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
         rounds += 1
     return refined, rounds, proposed
@@ -331,7 +335,7 @@ def _biased(meta: dict) -> str:
     )
 
 
-#: Rounds of screening and selection at most when a state is not measured.
+#: Rounds of screening and selection at most.
 MAX_ROUNDS = 3
 
 
@@ -379,29 +383,19 @@ def _refine_once(
         adapt = settings.doubts == "adapt"
         n_obs = int(sum(r.n_samples for r in used)) * len(measured)
         n_candidates = library.offered if library is not None else max(engine.base.size, 2)
-
-        def per_term(wide):  # a residual correlated with every candidate counts fewer independent samples
-            return rule.nats_per_term(n_obs, n_candidates) / residual_fraction(engine, wide)
-
         selected = select and not (adapt and noisy)  # a selection would absorb the input noise's bias
         tests = residual_tests(engine, sol) if selected and adapt and loop_possible(engine) else None
         if tests is not None and doubts(tests).closed_loop:  # and a loop's, which the start already shows
             selected = False  # (EMPS from its encoder: 16 min of CPU selecting on a biased evidence)
+        nats = rule.nats_per_term(n_obs, n_candidates)
+
+        def per_term(wide):  # a residual correlated with every candidate counts fewer independent samples
+            return nats / residual_fraction(engine, wide)
+
         if selected:
-            if screening:  # a state estimated, not measured, may have hidden a term from the equation error
-                assert library is not None  # refine() screens only with a library
-                once = dataclasses.replace(settings, jit=False)  # a few passes: compiling would cost more
-                screened = screen_terms(
-                    lambda recs, cands: Engine(model, recs, measured, once, cands),
-                    model,
-                    used,
-                    sol,
-                    engine,
-                    library,
-                    lambda n: rule.nats_per_term(n, n_candidates),
-                )
-                engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
-            sol = select_terms(engine, sol, alpha, per_term, twins, rule)
+            engine, sol, alpha, screened = _selection(
+                engine, sol, alpha, (candidates, twins), measured, library if screening else None, rule, nats
+            )
             bar.update()
         if selected or tests is None:  # the loop and the innovations' whiteness: on the structure selected
             tests = residual_tests(engine, sol)
@@ -416,6 +410,60 @@ def _refine_once(
         fraction = residual_fraction(engine, sol)
     info = _info(engine, sol, screened, fraction, tests, doubted, adapt)
     return to_model(engine, sol, info), screened
+
+
+def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: Rebased | None, rule, nats: float):
+    """The term selection from the first fit ``sol`` of ``engine`` at ``nats`` per term (``proposed``: the
+    candidates and look-alike pairs of :func:`~symsbl._refine.candidates.candidates`); with ``library``, the
+    output-error screen before it and the swaps after it when a state is not measured or the first fit's
+    residual is coloured. The engine, fit and prior precisions it ends with, and the terms the screen
+    proposed."""
+    candidates, twins = proposed
+    first, first_sol = engine, sol
+    # a state estimated, not measured, may have hidden a term from the equation error; and a coloured residual
+    # of the equation error's structure says one of its terms may stand in for others (on a drag oscillator the
+    # equation error took tan(v) for v + v|v|, and the selection made it up with v beside it)
+    hidden = library is not None and bool(set(engine.model.state_names) - set(measured))
+    doubtful = hidden or (library is not None and _coloured(engine, sol))
+    screened: dict = {}
+    if hidden:
+        assert library is not None
+        once = dataclasses.replace(engine.settings, jit=False)  # a few passes: compiling would cost more
+        model, n_candidates = engine.model, library.offered
+        screened = screen_terms(
+            lambda recs, cands: Engine(model, recs, measured, once, cands),
+            model,
+            engine.records,
+            sol,
+            engine,
+            library,
+            lambda n: rule.nats_per_term(n, n_candidates),
+        )
+        engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
+    wide = engine
+    sol = select_terms(engine, sol, alpha, lambda fit: nats / residual_fraction(wide, fit), twins, rule)
+    if doubtful:
+        assert library is not None
+        engine, sol, alpha = swap_terms(engine, sol, alpha, library, rule)
+        if sol.noise.order and _names(engine, sol) != _names(first, first_sol):
+            # the noise model was chosen on a residual coloured by the structure the selection replaced
+            engine.noise = "auto"
+            sol = engine.fit(sol.active, sol.theta, sol.alpha, warm=sol)
+    return engine, sol, alpha, screened
+
+
+def _names(engine: Engine, sol) -> set:
+    """The (state, term) names of the coefficients ``sol`` holds."""
+    return {
+        (engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name)
+        for i, j in (engine.positions[k] for k in sol.active)
+    }
+
+
+def _coloured(engine: Engine, sol) -> bool:
+    """The residual of the fit ``sol`` is not white: its noise model is coloured, or (white noise assumed) its
+    autocorrelation lowers the effective samples."""
+    return bool(sol.noise.order) or residual_fraction(engine, sol) < 1.0
 
 
 def _info(engine: Engine, sol, screened: dict, fraction: float, tests, doubted, adapt: bool) -> dict:

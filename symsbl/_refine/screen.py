@@ -29,7 +29,7 @@ from .._base.rule import complexity
 from .laplace import x0_pinv
 from .problem import window_plan
 
-__all__ = ["screen_terms", "score_gains", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
+__all__ = ["screen_terms", "score_gains", "blocks_info", "SCREEN_SAMPLES", "MAX_SCREENED", "PER_EQUATION"]
 
 #: Samples the screening pass runs on at most (evenly spaced windows of the refined records).
 SCREEN_SAMPLES = 2**13
@@ -83,6 +83,16 @@ def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, oth
         return None
     S, gr = _reduced(blocks.H, blocks.g, npar)
     return gains(S, gr, base, alpha_base, others)
+
+
+def blocks_info(passes, sol) -> tuple[np.ndarray, np.ndarray] | None:
+    """The data's information and gradient of every coefficient of ``passes`` at the fit ``sol``, its segments'
+    initial states eliminated (None when the pass is not finite)."""
+    with np.errstate(all="ignore"):
+        blocks = passes.sensitivities(sol.theta, sol.X0, passes.segments(sol.starts), sol.w, sol.ar)
+    if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
+        return None
+    return _reduced(blocks.H, blocks.g, sol.theta.size)
 
 
 def screen_terms(engine_of, model, records, solution, base_engine, library, threshold) -> dict:

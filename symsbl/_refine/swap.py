@@ -1,0 +1,225 @@
+"""Swaps: a selected term exchanged for a library term that does its work better.
+
+The selection removes terms from one extended fit; terms the equation error or the screen proposed for a law
+none of them is stay when their sum is what fits. On an oscillator with the drag ``v + v|v|`` driven below
+``|v| = 0.75`` (where ``tan(v) ~ v + v^3/3``), the equation error took ``tan(v)`` alone, the output error added
+``v`` beside it, and the pair carried the drag between them: removing either costs thousands of nats, and
+``v|v|`` was never a candidate (its score at the pair's fit is nil, as they already explain what it would).
+Measured on eight of twenty noise draws of one such record: the pair chosen, 34-44 nats below ``v, v|v|``,
+with a pole at ``|v| = pi/2`` that a larger force reaches (what a user does next).
+
+A swap asks the quadratic model of the output error, at the selected fit, what exchanging one of its terms
+``k`` for a library term ``j`` of the same equation would gain: with ``d = -theta_k`` the move that removes
+``k`` and ``F`` the remaining terms and ``j``,
+
+    gain = 1/2 b_F' P_FF^-1 b_F + g_k d - 1/2 P_kk d^2 - 1/2 g_A' P_AA^-1 g_A,   b_F = g_F - d S_Fk,
+
+with ``g`` the gradient of the log posterior at the fit, ``S`` the data's information (initial states
+eliminated, as in :mod:`.screen`), ``P = S + diag(alpha)`` and ``A`` the terms held: the maximum of the log
+posterior's quadratic model with ``k`` gone (its prior with it) less its maximum with ``k`` held. Two
+structures that give the same trajectory give the same sensitivities along it, so the model holds for swaps
+between look-alikes however far their coefficients move (predicted 44.6 nats for ``tan(v) -> v|v|``, refitted
+44). The terms tried are those the equation's selected terms nearly span (:data:`SPANNED`): a term they can
+reproduce can take the place of one of them. The two best swaps predicted to gain more than the rule's
+``margin_nats`` are refitted, the better is kept when its refit beats the structure by that margin, and then
+every kept term must clear the penalty again; a second round starts from there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._base.errors import SimulationError
+from .._base.rule import SelectionRule
+from .candidates import Rebased, prior
+from .engine import Engine
+from .rows import design_rows, term_values
+from .screen import blocks_info
+from .selection import _every_term_clears, objective
+
+__all__ = ["swap_terms", "swap_gains", "SPANNED", "MAX_POOL", "PER_EQUATION", "REFITS", "ROUNDS"]
+
+#: A library term is tried in a selected term's place when the equation's selected terms span it this closely
+#: (the cosine of its angle to their span): a term they nearly reproduce can take the place of one of them.
+SPANNED = 0.95
+#: Library terms added to the compiled structure for the swaps at most, over all equations, but at least
+#: :data:`PER_EQUATION` per equation.
+MAX_POOL = 24
+PER_EQUATION = 3
+#: Predicted swaps refitted per round at most (the largest gains first).
+REFITS = 2
+#: Rounds of swaps at most (each keeps one).
+ROUNDS = 2
+#: Rows of the model's states and inputs the library terms are compared on (evenly thinned).
+ROWS = 4000
+
+
+def swap_gains(S: np.ndarray, g: np.ndarray, theta: np.ndarray, alpha: np.ndarray, active, moves):
+    """The quadratic model's gain (nats) of each move ``(out, j)`` of ``moves`` (the terms ``out``, a tuple of
+    ``active``, removed and ``j`` added; see the module text) at the fit ``theta`` with prior precisions
+    ``alpha``, and the coefficients it predicts for each; ``S``, ``g``: the data's information and gradient of
+    every coefficient."""
+    active = np.asarray(active, dtype=int)
+    post = g - alpha * theta  # the log posterior's gradient (zero on ``active`` at its optimum)
+    P = S + np.diag(alpha)
+    here = 0.5 * post[active] @ np.linalg.solve(P[np.ix_(active, active)], post[active])
+    gains, moved = np.full(len(moves), -np.inf), []
+    for n, (out, j) in enumerate(moves):
+        out = list(out)
+        free = np.append(active[~np.isin(active, out)], j)
+        d = -theta[out]
+        b = post[free] - S[np.ix_(free, out)] @ d
+        theta_n = theta.copy()
+        theta_n[out] = 0.0
+        moved.append(theta_n)
+        try:
+            step = np.linalg.solve(P[np.ix_(free, free)], b)
+        except np.linalg.LinAlgError:
+            continue
+        theta_n[free] += step
+        gains[n] = 0.5 * b @ step + post[out] @ d - 0.5 * d @ P[np.ix_(out, out)] @ d - here
+    return gains, moved
+
+
+def _pool(engine: Engine, sol, library: Rebased, Z: np.ndarray) -> tuple[dict, dict]:
+    """Per fitted equation, the library terms to try in the place of its selected terms (``{state: [name]}``)
+    and, per name, the selected terms it may replace (``{(state, name): {term}}``): those the selected terms
+    span, closest first (see :data:`SPANNED`)."""
+    with np.errstate(all="ignore"):
+        values = term_values([t.expr for t in library.terms], engine.model, Z)
+    finite = np.all(np.isfinite(values), axis=0)
+    chosen = set(int(k) for k in sol.active)
+    fitted = [i for i, eq in enumerate(engine.full.equations) if not eq.fixed]
+    share = max(PER_EQUATION, MAX_POOL // max(len(fitted), 1))
+    pool: dict[str, list[str]] = {}
+    replaces: dict[tuple[str, str], set] = {}
+    for i in fitted:
+        eq = engine.full.equations[i]
+        own = [eq.terms[j] for k, (ii, j) in enumerate(engine.positions) if ii == i and k in chosen]
+        names = {t.name for t in own}
+        usable = [m for m, t in enumerate(library.terms) if finite[m] and t.name not in names]
+        with np.errstate(all="ignore"):
+            A = term_values([t.expr for t in own], engine.model, Z)
+        if not own or not usable or not np.all(np.isfinite(A)):
+            continue
+        V = values[:, usable]
+        Q = np.linalg.qr(A)[0]
+        size = np.linalg.norm(V, axis=0)
+        spanned = np.linalg.norm(Q.T @ V, axis=0) / np.where(size > 0, size, np.inf)
+        for m in [m for m in np.argsort(-spanned) if spanned[m] >= SPANNED][:share]:
+            name = library.terms[usable[m]].name
+            pool.setdefault(eq.lhs, []).append(name)
+            replaces[(eq.lhs, name)] = names
+    return pool, replaces
+
+
+def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebased, jit=None, lean=False):
+    """``engine`` compiled with the terms of ``pool`` added to those it tries, and ``sol`` and the prior
+    precisions ``alpha`` carried over by term (the new terms at zero, with :func:`prior`'s precisions); ``jit``
+    overrides the engine's setting; ``lean``: of the terms it tries, only those ``sol`` holds."""
+    held = {_name(engine, k) for k in (sol.active if lean else range(len(engine.positions)))}
+    merged: dict[str, list] = {}
+    for eq, full in zip(engine.model.equations, engine.full.equations):
+        extra = [(t.expr, 0.0) for t in full.terms[len(eq.terms) :] if (eq.lhs, t.name) in held]
+        if extra:
+            merged[eq.lhs] = extra
+    own = {eq.lhs: [str(t.expr) for t in eq.terms] for eq in engine.model.equations}
+    for lhs, names in pool.items():
+        have = set(own.get(lhs, [])) | {str(e) for e, _ in merged.get(lhs, [])}
+        merged.setdefault(lhs, []).extend((library[n].expr, 0.0) for n in names if str(library[n].expr) not in have)
+    settings = dataclasses.replace(engine.settings, noise=engine.noise)  # the noise model the fit chose
+    if jit is not None:
+        settings = dataclasses.replace(settings, jit=jit)
+    wider = Engine(engine.model, engine.records, engine.measured, settings, merged, guess=engine.guess)
+    old = {_name(engine, k): k for k in range(len(engine.positions))}
+    where = np.array([old.get(_name(wider, k), -1) for k in range(len(wider.positions))])
+    kept = where >= 0
+    walpha, theta, fitted = prior(wider), np.zeros(len(wider.positions)), prior(wider)
+    walpha[kept], theta[kept], fitted[kept] = alpha[where[kept]], sol.theta[where[kept]], sol.alpha[where[kept]]
+    active = np.flatnonzero(np.isin(where, sol.active) & kept)
+    wide = dataclasses.replace(sol, theta=theta, alpha=fitted, active=active)
+    return wider, wide, walpha
+
+
+def _name(engine: Engine, k: int) -> tuple[str, str]:
+    i, j = engine.positions[k]
+    eq = engine.full.equations[i]
+    return eq.lhs, eq.terms[j].name
+
+
+def _moves(engine: Engine, sol, replaces: dict) -> list[tuple[tuple, int]]:
+    """The moves ``(out, j)`` of compiled positions: each term :func:`_pool` proposed in the place of one of
+    the terms it may replace, or of two (a pair of look-alikes that together stand in for it)."""
+    index = {_name(engine, k): k for k in range(len(engine.positions))}
+    active = set(int(k) for k in sol.active)
+    out: list[tuple[tuple, int]] = []
+    for (lhs, name), terms in replaces.items():
+        j = index.get((lhs, name))
+        if j is None or j in active:
+            continue
+        held = [index[(lhs, t)] for t in sorted(terms) if index.get((lhs, t)) in active]
+        out += [((k,), j) for k in held]
+        out += [((k, m), j) for a, k in enumerate(held) for m in held[a + 1 :]]
+    return out
+
+
+def _carried(source: Engine, target: Engine, values: np.ndarray) -> np.ndarray:
+    """``values`` of ``source``'s coefficients at ``target``'s positions, by term (zero where it has none)."""
+    index = {_name(source, k): k for k in range(len(source.positions))}
+    out = np.zeros(len(target.positions))
+    for k in range(len(target.positions)):
+        m = index.get(_name(target, k))
+        if m is not None:
+            out[k] = values[m]
+    return out
+
+
+def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: SelectionRule):
+    """The selected fit ``sol`` of ``engine`` with its terms swapped for library terms while a refit's objective
+    says so (see the module text); the engine, the fit and the prior precisions it ends with."""
+    cost = float(sol.penalty) if sol.penalty is not None else 0.0
+    for _ in range(ROUNDS):
+        Z = design_rows(engine.model, engine.records, engine.guess, most=ROWS)
+        pool, replaces = _pool(engine, sol, library, Z)
+        # one pass of the terms held and tried: compiling it would cost more than it saves
+        once, wide, _ = _widened(engine, sol, alpha, pool, library, jit=False, lean=True)
+        moves = _moves(once, wide, replaces)
+        info = blocks_info(once.passes, wide) if moves else None
+        if info is None:
+            break
+        gains, moved = swap_gains(*info, wide.theta, wide.alpha, wide.active, moves)
+        gains += cost * np.array([len(out) - 1 for out, _ in moves])  # a merge saves a term's penalty
+        if not np.any(gains > rule.margin_nats):
+            break
+        wider, wide, walpha = _widened(engine, sol, alpha, pool, library)
+        best, index = None, {_name(wider, k): k for k in range(len(wider.positions))}
+        for n in np.argsort(-gains)[:REFITS]:
+            if not gains[n] > rule.margin_nats:
+                break
+            out, j = moves[n]
+            move = (tuple(index[_name(once, k)] for k in out), index[_name(once, j)])
+            trial = _refit(wider, wide, walpha, move, _carried(once, wider, moved[n]))
+            if trial is not None and objective(trial, cost) > objective(best or wide, cost) + rule.margin_nats:
+                best = trial
+        if best is None:
+            break
+        engine, sol, alpha = wider, _every_term_clears(wider, best, cost), walpha
+    return engine, sol, alpha
+
+
+def _refit(engine: Engine, sol, alpha: np.ndarray, move: tuple[tuple, int], start: np.ndarray):
+    """The refit of ``sol`` with the terms ``move[0]`` exchanged for ``move[1]`` from the coefficients ``start``
+    (None if it runs away or ends on shorter segments, where its evidence does not compare)."""
+    out, j = move
+    active = sorted(set(int(a) for a in sol.active) - set(out) | {j})
+    prior = sol.alpha.copy()
+    prior[j] = alpha[j]
+    try:
+        trial = engine.fit(active, start, prior)
+    except (SimulationError, np.linalg.LinAlgError):
+        return None
+    if trial.length < sol.length or not np.isfinite(trial.posterior.log_evidence):
+        return None
+    return trial
