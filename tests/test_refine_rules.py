@@ -199,6 +199,19 @@ def test_each_term_a_richer_structure_adds_must_close_its_tenth_of_the_gap():
     assert rule.choose([4, 5, 6], [0.0, 1.0, 2.0], E)[0] == 2
 
 
+def test_at_the_noise_floor_a_richer_structure_must_close_a_share_of_the_floors_own_uncertainty():
+    """The drag oscillator's path as measured (%: the exact five terms 0.5990, with tan(v) 0.5989, the pair's
+    standard error 5.3e-5; floor 0.5985): the sixth term gained twice its standard error and a fifth of the gap
+    (which needs a tenth), and was taken. The gap is now at least 5 % of the floor (an estimate a few per cent
+    off), of which the term must close a tenth, 0.0030 %: refused. A gain of 0.0040 % is taken."""
+    rule = SelectionRule()
+    wobble = np.array([-5e-7, 0.0, 5e-7])
+    E = np.array([0.005990 + wobble, 0.005989 + wobble * 0.9])
+    assert rule.choose([5, 6], [0.0, 1.0], E, floor=0.005985)[0] == 0
+    E[1] = 0.005950 + wobble * 0.9
+    assert rule.choose([5, 6], [0.0, 1.0], E, floor=0.005985)[0] == 1
+
+
 def test_the_library_is_said_to_lack_the_law_only_when_more_terms_still_buy_a_little():
     """:func:`symsbl._refine.path.beyond_library` on fold errors (relative) of a path, noise floor 0.031: an
     exact model whose folds stay above it (10.4 %, as from three accelerometer records at 3 % noise) and which a
