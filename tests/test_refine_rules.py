@@ -206,9 +206,9 @@ def test_at_the_noise_floor_a_richer_structure_must_close_a_share_of_the_floors_
     off), of which the term must close a tenth, 0.0030 %: refused. A gain of 0.0040 % is taken."""
     rule = SelectionRule()
     wobble = np.array([-5e-7, 0.0, 5e-7])
-    E = np.array([0.005990 + wobble, 0.005989 + wobble * 0.9])
+    E = np.array([0.005990 + wobble, 0.005989 - wobble * 0.8])  # the gain 1e-6, its standard error 5e-7
     assert rule.choose([5, 6], [0.0, 1.0], E, floor=0.005985)[0] == 0
-    E[1] = 0.005950 + wobble * 0.9
+    E[1] = 0.005950 - wobble * 0.8
     assert rule.choose([5, 6], [0.0, 1.0], E, floor=0.005985)[0] == 1
 
 

@@ -124,11 +124,9 @@ def complexity(expr: sp.Expr) -> tuple[int, int, int]:
     return rank, degree, int(sp.count_ops(expr))
 
 
-#: The share of the noise floor within which a structure's distance to it is not resolved: the floor is itself an
+#: The share of the noise floor within which a structure's distance to it is not resolved: the floor is an
 #: estimate, a few per cent off (:func:`symsbl._data.excitation.relative_noise` reads 1 % noise on a sine as
-#: 0.98 %). At the floor a richer structure must still close its share of this much: on a drag oscillator at
-#: 0.6 % noise, ``tan(v)`` beside the exact five terms lowered the cross-validated error by 1e-4 % (of
-#: 0.599 %), twice its standard error, and was chosen.
+#: 0.98 %), so at the floor a richer structure must still close its share of this much.
 FLOOR_RESOLUTION = 0.05
 
 
@@ -249,7 +247,7 @@ class SelectionRule:
         return int(current), (
             f"from the simplest, a richer structure only when it lowers the cross-validated "
             f"error beyond one standard error and each added term by {100 * self.min_gain:g} % of the "
-            "gap to the noise floor (at least 5 % of the floor)"
+            f"gap to the noise floor (at least {100 * FLOOR_RESOLUTION:g} % of the floor)"
         )
 
     @staticmethod

@@ -45,6 +45,7 @@ from .problem import check_records, window_plan
 from .result import to_model
 from .rows import design_rows, state_guess
 from .screen import screen_terms
+from .selection import _every_term_clears
 from .selection import select as select_terms
 from .solver import PHI_STOP
 from .swap import swap_terms
@@ -229,25 +230,28 @@ def _options(given: RefineOptions, options) -> RefineOptions:
 
 
 def _rounds(model, used, measured, settings, select, rebased, rule) -> tuple[IdentifiedModel, int, list]:
-    """The rounds of screening and selection until the structure repeats: the model, the number of rounds and
-    the terms each round's screen proposed."""
-    screening = select and rebased is not None
-    hidden = screening and bool(set(model.state_names) - set(measured))
+    """The rounds of screening and selection until the structure repeats: the model (its metadata's ``swaps``
+    those of every round), the number of rounds and the terms each round's screen proposed."""
+    offered = select and rebased is not None
+    hidden = offered and bool(set(model.state_names) - set(measured))
     # with a state not measured, the screen and the selection first work on short segments, where a term missing
     # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
-    refined, screened = _refine_once(model, used, measured, settings, select, rebased, screening, rule, short=hidden)
+    refined, screened = _refine_once(model, used, measured, settings, select, rebased, offered, rule, short=hidden)
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
+    swaps = list(refined.metadata["refine"]["swaps"])
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
         refined, screened = _refine_once(
-            refined, used, measured, settings, select, rebased, screening, rule, short=hidden
+            refined, used, measured, settings, select, rebased, offered, rule, short=hidden
         )
         proposed.append(screened)
+        swaps += refined.metadata["refine"]["swaps"]
         rounds += 1
     if hidden:
         refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
         rounds += 1
+    refined.metadata["refine"]["swaps"] = swaps
     return refined, rounds, proposed
 
 
@@ -335,6 +339,10 @@ def _biased(meta: dict) -> str:
     )
 
 
+#: A white-noise fit's residual is coloured below this effective fraction of its samples (white noise of a few
+#: hundred samples reads below 1 by chance).
+COLOURED = 0.9
+
 #: Rounds of screening and selection at most.
 MAX_ROUNDS = 3
 
@@ -358,7 +366,7 @@ def _refine_once(
     settings: Settings,
     select: bool,
     library: Rebased | None,
-    screening: bool,
+    offered: bool,
     rule: SelectionRule,
     short: bool = False,
 ):
@@ -374,7 +382,8 @@ def _refine_once(
     alpha = prior(engine)
     theta0 = np.zeros(len(engine.positions))
     theta0[engine.base] = engine.param.theta0[engine.base]
-    screened = {}
+    screened: dict = {}
+    swaps: list = []
     with Progress("output-error refinement", total=2 if select else 1, unit="fits") as bar:
         sol = engine.fit(engine.base, theta0, alpha)
         bar.update()
@@ -393,8 +402,8 @@ def _refine_once(
             return nats / residual_fraction(engine, wide)
 
         if selected:
-            engine, sol, alpha, screened = _selection(
-                engine, sol, alpha, (candidates, twins), measured, library if screening else None, rule, nats
+            engine, sol, alpha, screened, swaps = _selection(
+                engine, sol, alpha, (candidates, twins), measured, library if offered else None, rule, nats
             )
             bar.update()
         if selected or tests is None:  # the loop and the innovations' whiteness: on the structure selected
@@ -409,20 +418,20 @@ def _refine_once(
             tests = residual_tests(engine, sol)
         fraction = residual_fraction(engine, sol)
     info = _info(engine, sol, screened, fraction, tests, doubted, adapt)
+    info["refine"]["swaps"] = swaps
     return to_model(engine, sol, info), screened
 
 
 def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: Rebased | None, rule, nats: float):
     """The term selection from the first fit ``sol`` of ``engine`` at ``nats`` per term (``proposed``: the
     candidates and look-alike pairs of :func:`~symsbl._refine.candidates.candidates`); with ``library``, the
-    output-error screen before it and the swaps after it when a state is not measured or the first fit's
-    residual is coloured. The engine, fit and prior precisions it ends with, and the terms the screen
-    proposed."""
+    output-error screen before it when a state is not measured, and the swaps after it then or when the first
+    fit's residual is coloured. The engine, fit and prior precisions it ends with, the terms the screen
+    proposed and the swaps made."""
     candidates, twins = proposed
     first, first_sol = engine, sol
-    # a state estimated, not measured, may have hidden a term from the equation error; and a coloured residual
-    # of the equation error's structure says one of its terms may stand in for others (on a drag oscillator the
-    # equation error took tan(v) for v + v|v|, and the selection made it up with v beside it)
+    # a state estimated, not measured, may have hidden a term from the equation error; a coloured residual of
+    # the equation error's structure, that one of its terms stands in for others
     hidden = library is not None and bool(set(engine.model.state_names) - set(measured))
     doubtful = hidden or (library is not None and _coloured(engine, sol))
     screened: dict = {}
@@ -442,14 +451,25 @@ def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: R
         engine, sol, alpha = extend(engine, sol, alpha, candidates, screened, library)
     wide = engine
     sol = select_terms(engine, sol, alpha, lambda fit: nats / residual_fraction(wide, fit), twins, rule)
-    if doubtful:
-        assert library is not None
-        engine, sol, alpha = swap_terms(engine, sol, alpha, library, rule)
-        if sol.noise.order and _names(engine, sol) != _names(first, first_sol):
-            # the noise model was chosen on a residual coloured by the structure the selection replaced
-            engine.noise = "auto"
-            sol = engine.fit(sol.active, sol.theta, sol.alpha, warm=sol)
-    return engine, sol, alpha, screened
+    swaps: list = []
+    if doubtful and library is not None:
+        engine, sol, alpha, swaps = swap_terms(engine, sol, alpha, library, rule)
+        if first.settings.noise == "auto" and sol.noise.order and _names(engine, sol) != _names(first, first_sol):
+            sol = _noise_again(engine, sol)
+    return engine, sol, alpha, screened, swaps
+
+
+def _noise_again(engine: Engine, sol):
+    """``sol`` refitted with its noise model's order chosen again on its own residual (``sol`` if the refit
+    fails): the order was chosen on the first fit's, coloured by a structure the selection replaced."""
+    penalty = float(sol.penalty) if sol.penalty is not None else 0.0
+    order = engine.noise
+    engine.noise = "auto"
+    try:
+        return _every_term_clears(engine, engine.fit(sol.active, sol.theta, sol.alpha, warm=sol), penalty)
+    except (SimulationError, np.linalg.LinAlgError):
+        engine.noise = order
+        return sol
 
 
 def _names(engine: Engine, sol) -> set:
@@ -463,7 +483,7 @@ def _names(engine: Engine, sol) -> set:
 def _coloured(engine: Engine, sol) -> bool:
     """The residual of the fit ``sol`` is not white: its noise model is coloured, or (white noise assumed) its
     autocorrelation lowers the effective samples."""
-    return bool(sol.noise.order) or residual_fraction(engine, sol) < 1.0
+    return bool(sol.noise.order) or residual_fraction(engine, sol) < COLOURED
 
 
 def _info(engine: Engine, sol, screened: dict, fraction: float, tests, doubted, adapt: bool) -> dict:

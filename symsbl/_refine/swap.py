@@ -1,28 +1,24 @@
 """Swaps: a selected term exchanged for a library term that does its work better.
 
-The selection removes terms from one extended fit; terms the equation error or the screen proposed for a law
-none of them is stay when their sum is what fits. On an oscillator with the drag ``v + v|v|`` driven below
-``|v| = 0.75`` (where ``tan(v) ~ v + v^3/3``), the equation error took ``tan(v)`` alone, the output error added
-``v`` beside it, and the pair carried the drag between them: removing either costs thousands of nats, and
-``v|v|`` was never a candidate (its score at the pair's fit is nil, as they already explain what it would).
-Measured on eight of twenty noise draws of one such record: the pair chosen, 34-44 nats below ``v, v|v|``,
-with a pole at ``|v| = pi/2`` that a larger force reaches (what a user does next).
+The selection removes terms from one extended fit; terms proposed for a law that none of them is stay when
+their sum is what fits (``tan(v)`` beside ``v`` for the drag ``v + v|v|`` at ``|v| < 0.75``), and the term
+that is the law is never a candidate: its score at their fit is nil, as they already explain what it would.
 
-A swap asks the quadratic model of the output error, at the selected fit, what exchanging one of its terms
-``k`` for a library term ``j`` of the same equation would gain: with ``d = -theta_k`` the move that removes
-``k`` and ``F`` the remaining terms and ``j``,
+A swap asks the quadratic model of the output error, at the selected fit, what exchanging terms ``out`` of an
+equation (one, or two that together stand in for one) for a library term ``j`` would gain: with ``d =
+-theta_out`` the move that removes them and ``F`` the remaining terms and ``j``,
 
-    gain = 1/2 b_F' P_FF^-1 b_F + g_k d - 1/2 P_kk d^2 - 1/2 g_A' P_AA^-1 g_A,   b_F = g_F - d S_Fk,
+    gain = 1/2 b_F' P_FF^-1 b_F + p_out' d - 1/2 d' P_out,out d - 1/2 p_A' P_AA^-1 p_A,   b_F = p_F - S_F,out d,
 
-with ``g`` the gradient of the log posterior at the fit, ``S`` the data's information (initial states
-eliminated, as in :mod:`.screen`), ``P = S + diag(alpha)`` and ``A`` the terms held: the maximum of the log
-posterior's quadratic model with ``k`` gone (its prior with it) less its maximum with ``k`` held. Two
-structures that give the same trajectory give the same sensitivities along it, so the model holds for swaps
-between look-alikes however far their coefficients move (predicted 44.6 nats for ``tan(v) -> v|v|``, refitted
-44). The terms tried are those the equation's selected terms nearly span (:data:`SPANNED`): a term they can
-reproduce can take the place of one of them. The two best swaps predicted to gain more than the rule's
-``margin_nats`` are refitted, the better is kept when its refit beats the structure by that margin, and then
-every kept term must clear the penalty again; a second round starts from there.
+with ``S`` and ``g`` the data's information and gradient (initial states eliminated, as in :mod:`.screen`),
+``p = g - alpha theta`` the log posterior's gradient, ``P = S + diag(alpha)`` and ``A`` the terms held: the
+maximum of the log posterior's quadratic model with ``out`` gone (their priors with them) less its maximum
+with them held; two for one also saves a term's penalty. Two structures that give the same trajectory give the
+same sensitivities along it, so the model holds for swaps between look-alikes however far their coefficients
+move. The terms tried are those the equation's selected terms nearly span (:data:`SPANNED`): a term they can
+reproduce can take the place of one or two of them. The :data:`REFITS` best swaps predicted to gain more than
+the rule's ``margin_nats`` are refitted; of those whose refit beats the structure by that margin the best is
+kept, every kept term must then clear the penalty again, and another round starts from there.
 """
 
 from __future__ import annotations
@@ -39,15 +35,15 @@ from .rows import design_rows, term_values
 from .screen import blocks_info
 from .selection import _every_term_clears, objective
 
-__all__ = ["swap_terms", "swap_gains", "SPANNED", "MAX_POOL", "PER_EQUATION", "REFITS", "ROUNDS"]
+__all__ = ["swap_terms", "swap_gains", "SPANNED", "MAX_POOL", "POOL_PER_EQUATION", "REFITS", "ROUNDS", "ROWS"]
 
 #: A library term is tried in a selected term's place when the equation's selected terms span it this closely
 #: (the cosine of its angle to their span): a term they nearly reproduce can take the place of one of them.
 SPANNED = 0.95
 #: Library terms added to the compiled structure for the swaps at most, over all equations, but at least
-#: :data:`PER_EQUATION` per equation.
+#: :data:`POOL_PER_EQUATION` per equation.
 MAX_POOL = 24
-PER_EQUATION = 3
+POOL_PER_EQUATION = 3
 #: Predicted swaps refitted per round at most (the largest gains first).
 REFITS = 2
 #: Rounds of swaps at most (each keeps one).
@@ -57,10 +53,26 @@ ROWS = 4000
 
 
 def swap_gains(S: np.ndarray, g: np.ndarray, theta: np.ndarray, alpha: np.ndarray, active, moves):
-    """The quadratic model's gain (nats) of each move ``(out, j)`` of ``moves`` (the terms ``out``, a tuple of
-    ``active``, removed and ``j`` added; see the module text) at the fit ``theta`` with prior precisions
-    ``alpha``, and the coefficients it predicts for each; ``S``, ``g``: the data's information and gradient of
-    every coefficient."""
+    """The quadratic model's gain of each move (see the module text).
+
+    Parameters
+    ----------
+    S, g : ndarray, shapes (n, n) and (n,)
+        The data's information and gradient of every coefficient at the fit (initial states eliminated).
+    theta, alpha : ndarray, shape (n,)
+        The fit's coefficients and prior precisions.
+    active : array of int
+        The coefficients held.
+    moves : list of (tuple of int, int)
+        Each ``(out, j)``: the held coefficients ``out`` removed and ``j`` added.
+
+    Returns
+    -------
+    gains : ndarray, shape (len(moves),)
+        Nats (``-inf`` where the quadratic model is singular).
+    moved : list of ndarray, shape (n,)
+        The coefficients the quadratic model predicts after each move.
+    """
     active = np.asarray(active, dtype=int)
     post = g - alpha * theta  # the log posterior's gradient (zero on ``active`` at its optimum)
     P = S + np.diag(alpha)
@@ -92,7 +104,7 @@ def _pool(engine: Engine, sol, library: Rebased, Z: np.ndarray) -> tuple[dict, d
     finite = np.all(np.isfinite(values), axis=0)
     chosen = set(int(k) for k in sol.active)
     fitted = [i for i, eq in enumerate(engine.full.equations) if not eq.fixed]
-    share = max(PER_EQUATION, MAX_POOL // max(len(fitted), 1))
+    share = max(POOL_PER_EQUATION, MAX_POOL // max(len(fitted), 1))
     pool: dict[str, list[str]] = {}
     replaces: dict[tuple[str, str], set] = {}
     for i in fitted:
@@ -116,23 +128,25 @@ def _pool(engine: Engine, sol, library: Rebased, Z: np.ndarray) -> tuple[dict, d
 
 
 def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebased, jit=None, lean=False):
-    """``engine`` compiled with the terms of ``pool`` added to those it tries, and ``sol`` and the prior
-    precisions ``alpha`` carried over by term (the new terms at zero, with :func:`prior`'s precisions); ``jit``
-    overrides the engine's setting; ``lean``: of the terms it tries, only those ``sol`` holds."""
+    """``engine`` compiled with the terms of ``pool`` added to those it tries (``lean``: of those, only the ones
+    ``sol`` holds; ``jit`` overrides its setting): the new engine, ``sol`` carried over to it by term (the new
+    terms at zero, its prior precisions where it has them, else :func:`prior`'s) and the prior precisions
+    ``alpha`` carried over the same way."""
     held = {_name(engine, k) for k in (sol.active if lean else range(len(engine.positions)))}
     merged: dict[str, list] = {}
     for eq, full in zip(engine.model.equations, engine.full.equations):
         extra = [(t.expr, 0.0) for t in full.terms[len(eq.terms) :] if (eq.lhs, t.name) in held]
         if extra:
             merged[eq.lhs] = extra
-    own = {eq.lhs: [str(t.expr) for t in eq.terms] for eq in engine.model.equations}
+    # by name, as every mapping between the engines goes: a term already compiled is not added twice
+    have = {_name(engine, k) for k in range(len(engine.positions)) if _name(engine, k) in held or k in engine.base}
     for lhs, names in pool.items():
-        have = set(own.get(lhs, [])) | {str(e) for e, _ in merged.get(lhs, [])}
-        merged.setdefault(lhs, []).extend((library[n].expr, 0.0) for n in names if str(library[n].expr) not in have)
+        merged.setdefault(lhs, []).extend((library[n].expr, 0.0) for n in names if (lhs, n) not in have)
     settings = dataclasses.replace(engine.settings, noise=engine.noise)  # the noise model the fit chose
     if jit is not None:
         settings = dataclasses.replace(settings, jit=jit)
     wider = Engine(engine.model, engine.records, engine.measured, settings, merged, guess=engine.guess)
+    wider.longest = engine.longest  # segments held short stay short: the evidences compare
     old = {_name(engine, k): k for k in range(len(engine.positions))}
     where = np.array([old.get(_name(wider, k), -1) for k in range(len(wider.positions))])
     kept = where >= 0
@@ -178,11 +192,21 @@ def _carried(source: Engine, target: Engine, values: np.ndarray) -> np.ndarray:
 
 def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: SelectionRule):
     """The selected fit ``sol`` of ``engine`` with its terms swapped for library terms while a refit's objective
-    says so (see the module text); the engine, the fit and the prior precisions it ends with."""
+    says so (see the module text).
+
+    Returns
+    -------
+    engine, sol, alpha
+        The engine, the fit and the prior precisions it ends with.
+    swaps : list of dict
+        Each swap made: ``{"state", "out": [term, ...], "in": term}``.
+    """
     cost = float(sol.penalty) if sol.penalty is not None else 0.0
+    swaps: list[dict] = []
     for _ in range(ROUNDS):
-        Z = design_rows(engine.model, engine.records, engine.guess, most=ROWS)
-        pool, replaces = _pool(engine, sol, library, Z)
+        pool, replaces = _pool(engine, sol, library, design_rows(engine.model, engine.records, engine.guess, most=ROWS))
+        if not replaces:
+            break
         # one pass of the terms held and tried: compiling it would cost more than it saves
         once, wide, _ = _widened(engine, sol, alpha, pool, library, jit=False, lean=True)
         moves = _moves(once, wide, replaces)
@@ -190,23 +214,28 @@ def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: S
         if info is None:
             break
         gains, moved = swap_gains(*info, wide.theta, wide.alpha, wide.active, moves)
-        gains += cost * np.array([len(out) - 1 for out, _ in moves])  # a merge saves a term's penalty
+        gains += cost * np.array([len(out) - 1 for out, _ in moves])  # two for one saves a term's penalty
         if not np.any(gains > rule.margin_nats):
             break
         wider, wide, walpha = _widened(engine, sol, alpha, pool, library)
-        best, index = None, {_name(wider, k): k for k in range(len(wider.positions))}
+        index = {_name(wider, k): k for k in range(len(wider.positions))}
+        best, made = None, None
         for n in np.argsort(-gains)[:REFITS]:
             if not gains[n] > rule.margin_nats:
                 break
             out, j = moves[n]
             move = (tuple(index[_name(once, k)] for k in out), index[_name(once, j)])
             trial = _refit(wider, wide, walpha, move, _carried(once, wider, moved[n]))
-            if trial is not None and objective(trial, cost) > objective(best or wide, cost) + rule.margin_nats:
-                best = trial
-        if best is None:
+            if trial is None or objective(trial, cost) <= objective(wide, cost) + rule.margin_nats:
+                continue
+            if best is None or objective(trial, cost) > objective(best, cost):
+                best, made = trial, move
+        if best is None or made is None:
             break
+        lhs = _name(wider, made[1])[0]
+        swaps.append({"state": lhs, "out": [_name(wider, k)[1] for k in made[0]], "in": _name(wider, made[1])[1]})
         engine, sol, alpha = wider, _every_term_clears(wider, best, cost), walpha
-    return engine, sol, alpha
+    return engine, sol, alpha, swaps
 
 
 def _refit(engine: Engine, sol, alpha: np.ndarray, move: tuple[tuple, int], start: np.ndarray):
