@@ -417,8 +417,7 @@ def _refine_once(
                 sol = select_terms(engine, sol, alpha, per_term, twins, rule)
             tests = residual_tests(engine, sol)
         fraction = residual_fraction(engine, sol)
-    info = _info(engine, sol, screened, fraction, tests, doubted, adapt)
-    info["refine"]["swaps"] = swaps
+    info = _info(engine, sol, (screened, swaps), fraction, tests, doubted, adapt)
     return to_model(engine, sol, info), screened
 
 
@@ -433,10 +432,9 @@ def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: R
     # a state estimated, not measured, may have hidden a term from the equation error; a coloured residual of
     # the equation error's structure, that one of its terms stands in for others
     hidden = library is not None and bool(set(engine.model.state_names) - set(measured))
-    doubtful = hidden or (library is not None and _coloured(engine, sol))
+    swapping = library if hidden or (library is not None and _coloured(engine, sol)) else None
     screened: dict = {}
-    if hidden:
-        assert library is not None
+    if hidden and library is not None:
         once = dataclasses.replace(engine.settings, jit=False)  # a few passes: compiling would cost more
         model, n_candidates = engine.model, library.offered
         screened = screen_terms(
@@ -452,8 +450,8 @@ def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: R
     wide = engine
     sol = select_terms(engine, sol, alpha, lambda fit: nats / residual_fraction(wide, fit), twins, rule)
     swaps: list = []
-    if doubtful and library is not None:
-        engine, sol, alpha, swaps = swap_terms(engine, sol, alpha, library, rule)
+    if swapping is not None:
+        engine, sol, alpha, swaps = swap_terms(engine, sol, alpha, swapping, rule)
         if first.settings.noise == "auto" and sol.noise.order and _names(engine, sol) != _names(first, first_sol):
             sol = _noise_again(engine, sol)
     return engine, sol, alpha, screened, swaps
@@ -486,8 +484,10 @@ def _coloured(engine: Engine, sol) -> bool:
     return bool(sol.noise.order) or residual_fraction(engine, sol) < COLOURED
 
 
-def _info(engine: Engine, sol, screened: dict, fraction: float, tests, doubted, adapt: bool) -> dict:
-    """What the model file records of one refinement: its segments, evidence, residual tests and doubts."""
+def _info(engine: Engine, sol, found: tuple, fraction: float, tests, doubted, adapt: bool) -> dict:
+    """What the model file records of one refinement: its segments, evidence, the terms its screen proposed and
+    the swaps it made (``found``), residual tests and doubts."""
+    screened, swaps = found
     reach = record_horizon(engine, sol)
     return {
         "refine": {  # to_model adds the substeps, the interpolation and the noise model
@@ -499,6 +499,7 @@ def _info(engine: Engine, sol, screened: dict, fraction: float, tests, doubted, 
             "passes": int(sol.n_pass),
             "log_evidence": float(sol.posterior.log_evidence),
             "screened": screened,
+            "swaps": swaps,
             "effective_fraction": round(fraction, 4),
             "residual": [as_record(t) for t in tests],
             "doubts": list(doubted.reasons),

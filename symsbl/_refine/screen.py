@@ -79,10 +79,8 @@ def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, oth
     """The gain (nats) of adding each coefficient of ``others`` to those of ``base`` (prior precisions
     ``alpha_base``), from the blocks of one pass of ``npar`` coefficients (see the module text); None when the
     blocks are not finite."""
-    if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
-        return None
-    S, gr = _reduced(blocks.H, blocks.g, npar)
-    return gains(S, gr, base, alpha_base, others)
+    information = _information(blocks, npar)
+    return None if information is None else gains(*information, base, alpha_base, others)
 
 
 def blocks_info(passes, sol) -> tuple[np.ndarray, np.ndarray] | None:
@@ -90,9 +88,14 @@ def blocks_info(passes, sol) -> tuple[np.ndarray, np.ndarray] | None:
     initial states eliminated (None when the pass is not finite)."""
     with np.errstate(all="ignore"):
         blocks = passes.sensitivities(sol.theta, sol.X0, passes.segments(sol.starts), sol.w, sol.ar)
+    return _information(blocks, sol.theta.size)
+
+
+def _information(blocks, npar: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`_reduced` of ``blocks``, None when they are not finite."""
     if not (np.all(np.isfinite(blocks.H)) and np.all(np.isfinite(blocks.g))):
         return None
-    return _reduced(blocks.H, blocks.g, sol.theta.size)
+    return _reduced(blocks.H, blocks.g, npar)
 
 
 def screen_terms(engine_of, model, records, solution, base_engine, library, threshold) -> dict:

@@ -95,12 +95,10 @@ def swap_gains(S: np.ndarray, g: np.ndarray, theta: np.ndarray, alpha: np.ndarra
     return gains, moved
 
 
-def _pool(engine: Engine, sol, library: Rebased, Z: np.ndarray) -> tuple[dict, dict]:
+def _pool(engine: Engine, sol, library: Rebased, Z: np.ndarray, values: np.ndarray) -> tuple[dict, dict]:
     """Per fitted equation, the library terms to try in the place of its selected terms (``{state: [name]}``)
     and, per name, the selected terms it may replace (``{(state, name): {term}}``): those the selected terms
-    span, closest first (see :data:`SPANNED`)."""
-    with np.errstate(all="ignore"):
-        values = term_values([t.expr for t in library.terms], engine.model, Z)
+    span, closest first (see :data:`SPANNED`); ``values``: the library's terms on the rows ``Z``."""
     finite = np.all(np.isfinite(values), axis=0)
     chosen = set(int(k) for k in sol.active)
     fitted = [i for i, eq in enumerate(engine.full.equations) if not eq.fixed]
@@ -139,7 +137,7 @@ def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebase
         if extra:
             merged[eq.lhs] = extra
     # by name, as every mapping between the engines goes: a term already compiled is not added twice
-    have = {_name(engine, k) for k in range(len(engine.positions)) if _name(engine, k) in held or k in engine.base}
+    have = {name for name, k in _index(engine).items() if name in held or k in engine.base}
     for lhs, names in pool.items():
         merged.setdefault(lhs, []).extend((library[n].expr, 0.0) for n in names if (lhs, n) not in have)
     settings = dataclasses.replace(engine.settings, noise=engine.noise)  # the noise model the fit chose
@@ -147,10 +145,10 @@ def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebase
         settings = dataclasses.replace(settings, jit=jit)
     wider = Engine(engine.model, engine.records, engine.measured, settings, merged, guess=engine.guess)
     wider.longest = engine.longest  # segments held short stay short: the evidences compare
-    old = {_name(engine, k): k for k in range(len(engine.positions))}
-    where = np.array([old.get(_name(wider, k), -1) for k in range(len(wider.positions))])
+    where = _where(engine, wider)
     kept = where >= 0
-    walpha, theta, fitted = prior(wider), np.zeros(len(wider.positions)), prior(wider)
+    fresh = prior(wider)
+    walpha, fitted, theta = fresh.copy(), fresh, np.zeros(len(wider.positions))
     walpha[kept], theta[kept], fitted[kept] = alpha[where[kept]], sol.theta[where[kept]], sol.alpha[where[kept]]
     active = np.flatnonzero(np.isin(where, sol.active) & kept)
     wide = dataclasses.replace(sol, theta=theta, alpha=fitted, active=active)
@@ -163,10 +161,21 @@ def _name(engine: Engine, k: int) -> tuple[str, str]:
     return eq.lhs, eq.terms[j].name
 
 
+def _index(engine: Engine) -> dict:
+    """``{(state, term): position}`` of every compiled coefficient of ``engine``."""
+    return {_name(engine, k): k for k in range(len(engine.positions))}
+
+
+def _where(source: Engine, target: Engine) -> np.ndarray:
+    """Per position of ``target``, the position of the same term in ``source`` (-1 where it has none)."""
+    index = _index(source)
+    return np.array([index.get(_name(target, k), -1) for k in range(len(target.positions))], dtype=int)
+
+
 def _moves(engine: Engine, sol, replaces: dict) -> list[tuple[tuple, int]]:
     """The moves ``(out, j)`` of compiled positions: each term :func:`_pool` proposed in the place of one of
     the terms it may replace, or of two (a pair of look-alikes that together stand in for it)."""
-    index = {_name(engine, k): k for k in range(len(engine.positions))}
+    index = _index(engine)
     active = set(int(k) for k in sol.active)
     out: list[tuple[tuple, int]] = []
     for (lhs, name), terms in replaces.items():
@@ -181,13 +190,8 @@ def _moves(engine: Engine, sol, replaces: dict) -> list[tuple[tuple, int]]:
 
 def _carried(source: Engine, target: Engine, values: np.ndarray) -> np.ndarray:
     """``values`` of ``source``'s coefficients at ``target``'s positions, by term (zero where it has none)."""
-    index = {_name(source, k): k for k in range(len(source.positions))}
-    out = np.zeros(len(target.positions))
-    for k in range(len(target.positions)):
-        m = index.get(_name(target, k))
-        if m is not None:
-            out[k] = values[m]
-    return out
+    where = _where(source, target)
+    return np.where(where >= 0, values[where], 0.0)
 
 
 def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: SelectionRule):
@@ -203,22 +207,25 @@ def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: S
     """
     cost = float(sol.penalty) if sol.penalty is not None else 0.0
     swaps: list[dict] = []
+    Z = design_rows(engine.model, engine.records, engine.guess, most=ROWS)  # every round's engine: the same rows
+    with np.errstate(all="ignore"):
+        values = term_values([t.expr for t in library.terms], engine.model, Z)
     for _ in range(ROUNDS):
-        pool, replaces = _pool(engine, sol, library, design_rows(engine.model, engine.records, engine.guess, most=ROWS))
+        pool, replaces = _pool(engine, sol, library, Z, values)
         if not replaces:
             break
         # one pass of the terms held and tried: compiling it would cost more than it saves
-        once, wide, _ = _widened(engine, sol, alpha, pool, library, jit=False, lean=True)
-        moves = _moves(once, wide, replaces)
-        info = blocks_info(once.passes, wide) if moves else None
+        once, at, _ = _widened(engine, sol, alpha, pool, library, jit=False, lean=True)
+        moves = _moves(once, at, replaces)
+        info = blocks_info(once.passes, at) if moves else None
         if info is None:
             break
-        gains, moved = swap_gains(*info, wide.theta, wide.alpha, wide.active, moves)
+        gains, moved = swap_gains(*info, at.theta, at.alpha, at.active, moves)
         gains += cost * np.array([len(out) - 1 for out, _ in moves])  # two for one saves a term's penalty
         if not np.any(gains > rule.margin_nats):
             break
         wider, wide, walpha = _widened(engine, sol, alpha, pool, library)
-        index = {_name(wider, k): k for k in range(len(wider.positions))}
+        index = _index(wider)
         best, made = None, None
         for n in np.argsort(-gains)[:REFITS]:
             if not gains[n] > rule.margin_nats:
