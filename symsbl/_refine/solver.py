@@ -355,6 +355,9 @@ def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
 
 #: Rounds of alternating noise-model and coefficient estimates at most (iterated generalised least squares).
 NOISE_ROUNDS = 4
+#: Nats within which a round of those stops (as a stage before the last does): a round's optimum moves with the
+#: noise model it is fitted at, so only the last noise model's is sought to the fit's tolerance.
+ROUND_NATS = 1.0
 
 
 def _settle_noise(
@@ -362,10 +365,13 @@ def _settle_noise(
 ):
     """LM at the current noise model, then the noise re-estimated and LM again while it moves (its precisions by
     more than 2 %, an autoregressive coefficient by more than 0.01). ``noise``: "white", an autoregressive
-    order, or "auto" (the order chosen by BIC); ``max_iter``: LM passes of each round at most."""
-    it, n = lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
+    order, or "auto" (the order chosen by BIC); ``max_iter``: LM passes of each round at most. While the noise
+    moves, each round stops within :data:`ROUND_NATS` (its optimum moves with the noise), and the last noise
+    model's is then sought to ``tol``."""
     if not update_noise:
-        return it, n
+        return lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
+    loose = max(tol, ROUND_NATS)
+    it, n = lm(passes, it, alpha, active, tol=loose, max_iter=max_iter)
     for _ in range(NOISE_ROUNDS):
         ar = None if noise == "white" else _noise_model(passes, it, noise)
         if noise == "auto":
@@ -379,10 +385,13 @@ def _settle_noise(
             break  # a residual that is not finite says nothing of the noise: its precisions stay as they were
         if trial is it and np.max(np.abs(np.log(w_new / it.w))) <= 0.02:
             break
-        it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=tol, max_iter=max_iter)
+        it, n2 = lm(passes, replace(trial, w=w_new, blocks=None), alpha, active, tol=loose, max_iter=max_iter)
         n += n2
         if ar is None:  # white noise: one re-estimate of the precisions, as the noise rarely moves again
             break
+    if loose > tol:
+        it, n2 = lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
+        n += n2
     return it, n
 
 
