@@ -361,18 +361,26 @@ ROUND_NATS = 1.0
 
 
 def _settle_noise(
-    passes: Passes, it: Iterate, alpha, active, tol: float, update_noise: bool, noise="white", max_iter: int = LM_STEPS
+    passes: Passes,
+    it: Iterate,
+    alpha,
+    active,
+    tol: float,
+    update_noise: bool,
+    noise="white",
+    max_iter: int = LM_STEPS,
+    rounds: int = NOISE_ROUNDS,
 ):
     """LM at the current noise model, then the noise re-estimated and LM again while it moves (its precisions by
     more than 2 %, an autoregressive coefficient by more than 0.01). ``noise``: "white", an autoregressive
-    order, or "auto" (the order chosen by BIC); ``max_iter``: LM passes of each round at most. While the noise
-    moves, each round stops within :data:`ROUND_NATS` (its optimum moves with the noise), and the last noise
-    model's is then sought to ``tol``."""
+    order, or "auto" (the order chosen by BIC); ``max_iter``: LM passes of each round at most; ``rounds``: noise
+    re-estimates at most. While the noise moves, each round stops within :data:`ROUND_NATS` (its optimum moves
+    with the noise), and the last noise model's is then sought to ``tol``."""
     if not update_noise:
         return lm(passes, it, alpha, active, tol=tol, max_iter=max_iter)
     loose = max(tol, ROUND_NATS)
     it, n = lm(passes, it, alpha, active, tol=loose, max_iter=max_iter)
-    for _ in range(NOISE_ROUNDS):
+    for _ in range(rounds):
         ar = None if noise == "white" else _noise_model(passes, it, noise)
         if noise == "auto":
             noise = 0 if ar is None else ar.shape[1]  # the order is chosen once, the coefficients follow
@@ -539,13 +547,16 @@ def _continuation(
     they amplified the state past :data:`PHI_STOP`; else the segments grow (:func:`_lengthen`). A length
     whose fit amplifies the state past :data:`PHI_STOP` sends the fit back to the last length that did not.
     ``noise="auto"`` chooses the noise model's order on the final stage (before it, the order reached so far).
+    A stage before the final one re-estimates the noise once: it only brings the coefficients near, and the
+    noise of its short segments is not the whole records' anyway.
     """
     scale = _state_scale(guess, it.X0)
     stages, previous, leap, jumped, n_pass = [], None, True, False, 0
     while True:
         final = length >= full
         policy = noise if (final or noise != "auto") else it.order
-        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy, max_iter)
+        rounds = NOISE_ROUNDS if final else 1
+        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy, max_iter, rounds)
         n_pass += n
         phi = _growth(it.made.end_S, it.theta.size, scale)
         stages.append(_stage(length, it, n, phi))
