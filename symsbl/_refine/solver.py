@@ -547,8 +547,9 @@ def _continuation(
     they amplified the state past :data:`PHI_STOP`; else the segments grow (:func:`_lengthen`). A length
     whose fit amplifies the state past :data:`PHI_STOP` sends the fit back to the last length that did not.
     ``noise="auto"`` chooses the noise model's order on the final stage (before it, the order reached so far).
-    A stage before the final one re-estimates the noise once: it only brings the coefficients near, and the
-    noise of its short segments is not the whole records' anyway.
+    A stage before the final one re-estimates the noise (when it is re-estimated) once: it only brings the
+    coefficients near, and the noise of its short segments is not the whole records' anyway; :func:`fit`
+    settles it where the continuation stops short.
     """
     scale = _state_scale(guess, it.X0)
     stages, previous, leap, jumped, n_pass = [], None, True, False, 0
@@ -556,7 +557,9 @@ def _continuation(
         final = length >= full
         policy = noise if (final or noise != "auto") else it.order
         rounds = NOISE_ROUNDS if final else 1
-        it, n = _settle_noise(passes, it, alpha, active, tol if final else 1.0, update_noise, policy, max_iter, rounds)
+        it, n = _settle_noise(
+            passes, it, alpha, active, tol if final else ROUND_NATS, update_noise, policy, max_iter, rounds
+        )
         n_pass += n
         phi = _growth(it.made.end_S, it.theta.size, scale)
         stages.append(_stage(length, it, n, phi))
@@ -665,8 +668,9 @@ def fit(
         passes, it, alpha, active, guess, length, full, growth, tol, update_noise, noise, max_iter
     )
     n_pass += n
-    if noise == "auto" and length < full and update_noise:  # the continuation stopped short: choose it here
-        it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, "auto", max_iter)
+    coloured = noise == "auto" or (noise != "white" and int(noise) > 0)
+    if coloured and length < full and update_noise:  # the continuation stopped short: settle the noise here
+        it, n = _settle_noise(passes, it, alpha, active, tol, update_noise, noise, max_iter)
         n_pass += n
         stages.append(_stage(length, it, n, float("nan"), noise=it.order))
     _require_finite(it.theta, it.made.H)
