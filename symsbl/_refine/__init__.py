@@ -472,10 +472,7 @@ def _noise_again(engine: Engine, sol):
 
 def _names(engine: Engine, sol) -> set:
     """The (state, term) names of the coefficients ``sol`` holds."""
-    return {
-        (engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name)
-        for i, j in (engine.positions[k] for k in sol.active)
-    }
+    return {engine.names[int(k)] for k in sol.active}
 
 
 def _coloured(engine: Engine, sol) -> bool:

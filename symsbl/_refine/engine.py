@@ -74,6 +74,10 @@ class Engine:
         own = set(free_positions(model))
         self.base = np.array([k for k, p in enumerate(self.positions) if p in own], dtype=int)
         self.keys = [complexity(self.full.equations[i].terms[j].sympy) for i, j in self.positions]
+        #: ``(state, term)`` of each compiled coefficient, and the position of each such pair: every mapping
+        #: between engines and structures goes by these names.
+        self.names = [(self.full.equations[i].lhs, self.full.equations[i].terms[j].name) for i, j in self.positions]
+        self.index = {name: k for k, name in enumerate(self.names)}
         self.guess = state_guess(model, records, self.outputs) if guess is None else guess
         self.widths = smoothing_widths(model, records, self.guess)
         fitted = smooth_model(self.full, self.widths) if settings.smooth else self.full

@@ -129,10 +129,7 @@ def _simpler_twins(engine: Engine, best, alpha: np.ndarray, twins: dict, rule: S
     drag, which a refit put 1.6 nats higher; on a hardening oscillator it kept ``sin(x)`` for ``x`` (the
     refit 5e-4 nats higher: the same model, since ``x^3`` takes up the difference). One refit per such pair.
     """
-    index = {
-        (engine.full.equations[i].lhs, engine.full.equations[i].terms[j].name): k
-        for k, (i, j) in enumerate(engine.positions)
-    }
+    index = engine.index
     rows = None
     for lhs, pairs in twins.items():
         for alike, term in pairs.items():

@@ -130,14 +130,14 @@ def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebase
     ``sol`` holds; ``jit`` overrides its setting): the new engine, ``sol`` carried over to it by term (the new
     terms at zero, its prior precisions where it has them, else :func:`prior`'s) and the prior precisions
     ``alpha`` carried over the same way."""
-    held = {_name(engine, k) for k in (sol.active if lean else range(len(engine.positions)))}
+    held = {engine.names[k] for k in sol.active} if lean else set(engine.names)
     merged: dict[str, list] = {}
     for eq, full in zip(engine.model.equations, engine.full.equations):
         extra = [(t.expr, 0.0) for t in full.terms[len(eq.terms) :] if (eq.lhs, t.name) in held]
         if extra:
             merged[eq.lhs] = extra
     # by name, as every mapping between the engines goes: a term already compiled is not added twice
-    have = {name for name, k in _index(engine).items() if name in held or k in engine.base}
+    have = held | {engine.names[k] for k in engine.base}
     for lhs, names in pool.items():
         merged.setdefault(lhs, []).extend((library[n].expr, 0.0) for n in names if (lhs, n) not in have)
     settings = dataclasses.replace(engine.settings, noise=engine.noise)  # the noise model the fit chose
@@ -155,27 +155,15 @@ def _widened(engine: Engine, sol, alpha: np.ndarray, pool: dict, library: Rebase
     return wider, wide, walpha
 
 
-def _name(engine: Engine, k: int) -> tuple[str, str]:
-    i, j = engine.positions[k]
-    eq = engine.full.equations[i]
-    return eq.lhs, eq.terms[j].name
-
-
-def _index(engine: Engine) -> dict:
-    """``{(state, term): position}`` of every compiled coefficient of ``engine``."""
-    return {_name(engine, k): k for k in range(len(engine.positions))}
-
-
 def _where(source: Engine, target: Engine) -> np.ndarray:
     """Per position of ``target``, the position of the same term in ``source`` (-1 where it has none)."""
-    index = _index(source)
-    return np.array([index.get(_name(target, k), -1) for k in range(len(target.positions))], dtype=int)
+    return np.array([source.index.get(name, -1) for name in target.names], dtype=int)
 
 
 def _moves(engine: Engine, sol, replaces: dict) -> list[tuple[tuple, int]]:
     """The moves ``(out, j)`` of compiled positions: each term :func:`_pool` proposed in the place of one of
     the terms it may replace, or of two (a pair of look-alikes that together stand in for it)."""
-    index = _index(engine)
+    index = engine.index
     active = set(int(k) for k in sol.active)
     out: list[tuple[tuple, int]] = []
     for (lhs, name), terms in replaces.items():
@@ -225,23 +213,24 @@ def swap_terms(engine: Engine, sol, alpha: np.ndarray, library: Rebased, rule: S
         if not np.any(gains > rule.margin_nats):
             break
         wider, wide, walpha = _widened(engine, sol, alpha, pool, library)
-        index = _index(wider)
-        best, made = None, None
+        index = wider.index
+        best: tuple | None = None  # (objective, refit, move)
         for n in np.argsort(-gains)[:REFITS]:
             if not gains[n] > rule.margin_nats:
                 break
             out, j = moves[n]
-            move = (tuple(index[_name(once, k)] for k in out), index[_name(once, j)])
+            move = (tuple(index[once.names[k]] for k in out), index[once.names[j]])
             trial = _refit(wider, wide, walpha, move, _carried(once, wider, moved[n]))
             if trial is None or objective(trial, cost) <= objective(wide, cost) + rule.margin_nats:
                 continue
-            if best is None or objective(trial, cost) > objective(best, cost):
-                best, made = trial, move
-        if best is None or made is None:
+            if best is None or objective(trial, cost) > best[0]:
+                best = (objective(trial, cost), trial, move)
+        if best is None:
             break
-        lhs = _name(wider, made[1])[0]
-        swaps.append({"state": lhs, "out": [_name(wider, k)[1] for k in made[0]], "in": _name(wider, made[1])[1]})
-        engine, sol, alpha = wider, _every_term_clears(wider, best, cost), walpha
+        _, trial, (out, j) = best
+        lhs, term = wider.names[j]
+        swaps.append({"state": lhs, "out": [wider.names[k][1] for k in out], "in": term})
+        engine, sol, alpha = wider, _every_term_clears(wider, trial, cost), walpha
     return engine, sol, alpha, swaps
 
 
