@@ -221,7 +221,7 @@ def test_a_structure_that_runs_away_on_every_sample_leaves_the_evidences(monkeyp
     monkeypatch.setattr(path, "PATH_SAMPLES", train.n_samples // 2)
     calls = []
 
-    def runs_away(engine, sol, records, measured, cost):
+    def runs_away(engine, sol, records, measured, cost, seed=None):
         calls.append([r.n_samples for r in records])
         return None
 

@@ -47,7 +47,7 @@ from .rows import design_rows, state_guess
 from .screen import screen_terms
 from .selection import _every_term_clears
 from .selection import select as select_terms
-from .solver import PHI_STOP
+from .solver import PHI_STOP, Solution
 from .swap import swap_terms
 
 __all__ = ["refine", "refine_or_keep", "MAX_SAMPLES", "RefineOptions"]
@@ -175,12 +175,14 @@ def refine(
         if not isinstance(library, Library):
             raise ParameterError(expected("library", "a symsbl Library (or None)", type(library).__name__, raw=True))
         rebased = Rebased(library, model, _ranges(model, used, measured))
-    refined, rounds, proposed = _rounds(model, used, measured, settings, select, rebased, rule)
+    refined, rounds, proposed, last = _rounds(model, used, measured, settings, select, rebased, rule)
     info = refined.metadata["refine"]
     stuck = info["biased"] and info["adapted"]  # output error biased: the structure it was given stays
     if not stuck and select and rule.model_choice != "evidence":  # the structure that validates
         n_candidates = len(library) if library is not None else max(sum(len(eq.terms) for eq in refined.equations), 2)
-        refined = choose_structure(model, refined, used, measured, settings, rule, n_candidates, info["short_segments"])
+        refined = choose_structure(
+            model, refined, used, measured, settings, rule, n_candidates, info["short_segments"], seed=last
+        )
     meta = refined.metadata["refine"]
     if len(used) != len(records):  # windows of the records were fitted: their noise levels are not the records'
         for channel in meta.get("noise", {}).values():
@@ -229,30 +231,32 @@ def _options(given: RefineOptions, options) -> RefineOptions:
     return as_options(given if options is None else options, "options")
 
 
-def _rounds(model, used, measured, settings, select, rebased, rule) -> tuple[IdentifiedModel, int, list]:
+def _rounds(model, used, measured, settings, select, rebased, rule) -> tuple[IdentifiedModel, int, list, Solution]:
     """The rounds of screening and selection until the structure repeats: the model (its metadata's ``swaps``
-    those of every round), the number of rounds and the terms each round's screen proposed."""
+    those of every round), the number of rounds, the terms each round's screen proposed and the last fit."""
     offered = select and rebased is not None
     hidden = offered and bool(set(model.state_names) - set(measured))
     # with a state not measured, the screen and the selection first work on short segments, where a term missing
     # from the start cannot yet make the simulation run off the record; the structure found is then fitted whole
-    refined, screened = _refine_once(model, used, measured, settings, select, rebased, offered, rule, short=hidden)
+    refined, screened, last = _refine_once(
+        model, used, measured, settings, select, rebased, offered, rule, short=hidden
+    )
     rounds, seen, proposed = 1, {_structure(model)}, [screened]
     swaps = list(refined.metadata["refine"]["swaps"])
     while screened and rounds < MAX_ROUNDS and _structure(refined) not in seen:
         # the screen scored its candidates at the equation-error structure; from the new one it may see others
         seen.add(_structure(refined))
-        refined, screened = _refine_once(
+        refined, screened, last = _refine_once(
             refined, used, measured, settings, select, rebased, offered, rule, short=hidden
         )
         proposed.append(screened)
         swaps += refined.metadata["refine"]["swaps"]
         rounds += 1
     if hidden:
-        refined, _ = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
+        refined, _, last = _refine_once(refined, used, measured, settings, select, rebased, False, rule)
         rounds += 1
     refined.metadata["refine"]["swaps"] = swaps
-    return refined, rounds, proposed
+    return refined, rounds, proposed, last
 
 
 def _warn_hypersensitive(meta: dict, dt: float) -> None:
@@ -370,8 +374,9 @@ def _refine_once(
     rule: SelectionRule,
     short: bool = False,
 ):
-    """One fit of ``model``'s structure, then (``select``) the selection; the refined model and the terms the
-    screen proposed. ``short``: every fit on segments of the first length of the continuation."""
+    """One fit of ``model``'s structure, then (``select``) the selection; the refined model, the terms the
+    screen proposed and the fit it reports. ``short``: every fit on segments of the first length of the
+    continuation."""
     guess = state_guess(model, used, measured)
     candidates, twins = {}, {}
     if select and library is not None:
@@ -418,7 +423,7 @@ def _refine_once(
             tests = residual_tests(engine, sol)
         fraction = residual_fraction(engine, sol)
     info = _info(engine, sol, (screened, swaps), fraction, tests, doubted, adapt)
-    return to_model(engine, sol, info), screened
+    return to_model(engine, sol, info), screened, sol
 
 
 def _selection(engine: Engine, sol, alpha, proposed: tuple, measured, library: Rebased | None, rule, nats: float):

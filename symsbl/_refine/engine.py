@@ -23,7 +23,7 @@ from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
 from .rows import design_rows, simulated_guess, state_guess
 from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
-from .solver import LM_STEPS, PHI_STOP, Iterate, Solution, _growth, _resegment, _state_scale, fit, horizon
+from .solver import LM_STEPS, PHI_STOP, Iterate, Solution, Warm, _growth, _resegment, _state_scale, fit, horizon
 from .structure import free_positions, with_terms
 
 __all__ = ["Engine", "Settings", "residual_fraction", "record_horizon"]
@@ -165,7 +165,7 @@ class Engine:
         active,
         theta0: np.ndarray,
         alpha0: np.ndarray,
-        warm: Solution | None = None,
+        warm: Solution | Warm | None = None,
         longest: int | None = None,
         screen: int | None = None,
     ) -> Solution:

@@ -28,7 +28,7 @@ from .engine import Engine, Settings, residual_fraction
 from .laplace import reduce_model
 from .result import to_model
 from .selection import _every_term_clears
-from .solver import Solution
+from .solver import Solution, restarted
 
 __all__ = ["choose_structure", "beyond_library", "MAX_PATH", "BEYOND", "PATH_SAMPLES"]
 
@@ -197,9 +197,18 @@ def _union(start: IdentifiedModel, refined: IdentifiedModel, records, measured, 
     return engine, prior(engine), theta0, by_name
 
 
-def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name):
-    """The union's fit and the fits of the evidence's and the equation error's structures (None: ran away)."""
-    union = _fit(engine, np.arange(len(engine.positions)), theta0, alpha)
+def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name, seed: Solution | None = None):
+    """The union's fit and the fits of the evidence's and the equation error's structures (None: ran away). With
+    ``seed``, the evidence's fit on the whole records, the union starts there, its other terms at zero; else (or
+    where that runs away) by continuation from the equation error's coefficients."""
+    every = np.arange(len(engine.positions))
+    warm = None if seed is None else restarted(seed, engine.passes)
+    union = None
+    if warm is not None:
+        near = np.zeros_like(theta0)
+        near[engine.base] = theta0[engine.base]
+        union = _fit(engine, every, near, alpha, warm=warm)
+    union = union or _fit(engine, every, theta0, alpha)
     if union is None:
         return None, {}
     fits = {"evidence": _fit(engine, engine.base, theta0, alpha, warm=union)}
@@ -312,13 +321,16 @@ def _shortened(records, most: int) -> list:
     return [r.slice(0, max(64, r.n_samples * most // total)) for r in records]
 
 
-def _refitted(engine: Engine, sol, records, measured, cost: float):
-    """The structure of ``sol`` refitted on every sample of ``records``: its engine and solution, or None when the
-    refit runs away there (a structure validated on the first stretches need not hold on the rest)."""
+def _refitted(engine: Engine, sol, records, measured, cost: float, seed: Solution | None = None):
+    """The structure of ``sol`` refitted on every sample of ``records`` (from ``seed``'s whole records when given,
+    else, or where that runs away, by continuation): its engine and solution, or None when the refit runs away
+    there (a structure validated on the first stretches need not hold on the rest)."""
     chosen = to_model(engine, sol, {})
     full = Engine(chosen, records, measured, engine.settings, {})
     full.longest = engine.longest
-    refit = _fit(full, full.base, full.param.theta0, prior(full))
+    warm = None if seed is None else restarted(seed, full.passes)
+    refit = None if warm is None else _fit(full, full.base, full.param.theta0, prior(full), warm=warm)
+    refit = refit or _fit(full, full.base, full.param.theta0, prior(full))
     return None if refit is None else (full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost))
 
 
@@ -331,6 +343,7 @@ def choose_structure(
     rule: SelectionRule,
     n_candidates: int,
     longest: int | None = None,
+    seed: Solution | None = None,
 ) -> IdentifiedModel:
     """The structure the identification keeps, with the model path it was chosen from.
 
@@ -347,11 +360,13 @@ def choose_structure(
         Candidates the terms were chosen from (the penalty's ``M``).
     longest : int, optional
         The longest segments of the fits (``refined``'s, when held short).
+    seed : Solution, optional
+        ``refined``'s fit: where it spans whole records, the path's fits start from its initial states.
     """
     scored = _shortened(records, PATH_SAMPLES)
     engine, alpha, theta0, by_name = _union(start, refined, scored, measured, settings)
     engine.longest = longest
-    union, fits = _candidates(engine, start, alpha, theta0, by_name)
+    union, fits = _candidates(engine, start, alpha, theta0, by_name, seed)
     cv = folds(engine.passes, engine.length0)
     if union is None or cv is None:
         return refined
@@ -371,7 +386,7 @@ def choose_structure(
         sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
         if any(a.n_samples != b.n_samples for a, b in zip(scored, records)):
             cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
-            whole = _refitted(engine, sol, records, measured, cost)
+            whole = _refitted(engine, sol, records, measured, cost, seed)
             if whole is not None:
                 fitted, sol = whole
             elif evidence is not None:  # the evidence's structure, fitted on every sample, stays

@@ -27,6 +27,8 @@ from .sensitivity import Blocks, Passes, Segments
 
 __all__ = [
     "Solution",
+    "Warm",
+    "restarted",
     "Iterate",
     "fit",
     "lm",
@@ -127,6 +129,28 @@ class Solution:
     def channel_w(self) -> np.ndarray:
         """One noise precision per channel, ``(n_measured,)``, the records pooled by their samples."""
         return pooled(self.w, self.n_kept_by_record)
+
+
+@dataclass(frozen=True)
+class Warm:
+    """Where a fit starts warm: its segments' first rows, their initial states and length, and the noise (the
+    attributes of a :class:`Solution` that a warm start reads)."""
+
+    X0: np.ndarray
+    starts: np.ndarray
+    length: int
+    w: np.ndarray
+    ar: np.ndarray | None = None
+
+
+def restarted(sol: Solution, passes: Passes) -> Warm | None:
+    """The warm start, on ``passes``' records, of the whole-record fit ``sol`` of the same records or of their first
+    stretches: each record one segment from ``sol``'s initial state, with ``sol``'s noise (None unless ``sol``
+    held one segment per record)."""
+    records = passes.records
+    if len(sol.starts) != len(records.starts):
+        return None
+    return Warm(sol.X0.copy(), records.starts.copy(), int(records.lengths.max()), sol.w, sol.ar)
 
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray, starts=None) -> np.ndarray:
@@ -609,7 +633,7 @@ def fit(
     update_noise: bool = True,
     mackay: bool = True,
     tol: float = 1e-4,
-    warm: Solution | None = None,
+    warm: Solution | Warm | None = None,
     longest: int | None = None,
     noise="white",
     max_iter: int = LM_STEPS,
@@ -634,9 +658,9 @@ def fit(
         differences; one row serves every record).
     update_noise, mackay : bool
         Re-estimate the noise precisions; re-estimate the prior precisions (MacKay).
-    warm : Solution, optional
-        A solution of a nearby structure: its segments, initial states and noise are the start, and
-        the segments do not grow again (the structure's optimum is near).
+    warm : Solution or Warm, optional
+        A solution of a nearby structure (or its :func:`restarted` whole records): its segments, initial states
+        and noise are the start, and the segments do not grow again (the structure's optimum is near).
     longest : int, optional
         The segments grow to at most this length (default: whole records).
     noise : {"white", "auto"} or int
