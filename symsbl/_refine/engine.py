@@ -23,7 +23,7 @@ from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
 from .rows import design_rows, simulated_guess, state_guess
 from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
-from .solver import LM_STEPS, PHI_STOP, Iterate, Solution, Warm, _growth, _resegment, _state_scale, fit, horizon
+from .solver import LM_STEPS, PHI_STOP, TOL, Iterate, Solution, Warm, _growth, _resegment, _state_scale, fit, horizon
 from .structure import free_positions, with_terms
 
 __all__ = ["Engine", "Settings", "residual_fraction", "record_horizon"]
@@ -102,6 +102,8 @@ class Engine:
         self.noise = settings.noise
         #: The longest segments of every fit (None: whole records), held short where disturbances accumulate.
         self.longest: int | None = None
+        #: Nats within which every fit of this engine stops (the solver's default; the model path's looser).
+        self.tol = TOL
 
     def _sign_rate(self) -> float:
         """The largest rate a ``tanh(a / eps)`` standing for ``sign(a)`` adds at ``a = 0``: the stiffness ``K = |coef|
@@ -191,6 +193,7 @@ class Engine:
             update_noise=screen is None,
             mackay=screen is None,
             max_iter=LM_STEPS if screen is None else int(screen),
+            tol=self.tol,
         )
         if self.noise == "auto":
             self.noise = sol.noise.order

@@ -377,6 +377,8 @@ def _noise_model(passes: Passes, it: Iterate, order) -> np.ndarray | None:
     return ar
 
 
+#: Nats within which a fit stops by default.
+TOL = 1e-4
 #: Rounds of alternating noise-model and coefficient estimates at most (iterated generalised least squares).
 NOISE_ROUNDS = 4
 #: Nats within which a round of those stops (as a stage before the last does): a round's optimum moves with the
@@ -632,7 +634,7 @@ def fit(
     w=None,
     update_noise: bool = True,
     mackay: bool = True,
-    tol: float = 1e-4,
+    tol: float = TOL,
     warm: Solution | Warm | None = None,
     longest: int | None = None,
     noise="white",
