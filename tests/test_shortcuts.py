@@ -264,3 +264,28 @@ def test_the_residual_tests_of_long_data_read_each_segments_first_stretch():
     assert ends[0] - starts[0] == min(whole[0], 4 * LAGS)
     np.testing.assert_array_equal(ends[2:] - starts[2:], whole[2:] // 4)
     assert abs(int(np.sum(ends - starts)) - TEST_SAMPLES) <= 4 * LAGS
+
+
+def test_a_warm_start_from_whole_records_holds_only_where_the_continuation_would_reach_them():
+    """The refined fit starts the path's fits only when it held one segment per record, its model amplifies no
+    state error PHI_STOP-fold within them and no shorter segments are asked for; it then starts each record (or
+    its first stretch) as one segment from the fitted initial state, with the fit's noise."""
+    from types import SimpleNamespace as Stub
+
+    from symsbl._refine.solver import PHI_STOP, restarted
+
+    prefixes = Stub(records=Stub(starts=np.array([0, 100]), lengths=np.array([100, 60])))
+    seed = Stub(
+        starts=np.array([0, 200]),
+        X0=np.arange(6.0).reshape(2, 3),
+        w=np.ones((2, 1)),
+        ar=None,
+        stages=[{"length": 200, "growth": 1.0}],
+    )
+    warm = restarted(seed, prefixes)
+    assert warm is not None and warm.length == 100 and list(warm.starts) == [0, 100]
+    assert np.array_equal(warm.X0, seed.X0) and warm.X0 is not seed.X0
+    assert restarted(Stub(**{**vars(seed), "starts": np.array([0, 50, 200])}), prefixes) is None
+    # growth PHI_STOP^4 over 200 samples: PHI_STOP-fold within 50, shorter than the 100-sample record
+    assert restarted(Stub(**{**vars(seed), "stages": [{"length": 200, "growth": PHI_STOP**4}]}), prefixes) is None
+    assert restarted(seed, prefixes, longest=64) is None

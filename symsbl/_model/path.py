@@ -23,7 +23,8 @@ class PathEntry:
     n_terms : int
         Free terms.
     log_evidence : float
-        Laplace log evidence of the output-error fit (nats), under the fit's noise model.
+        Laplace log evidence of the output-error fit (nats), under the fit's noise model; the path's fits stop
+        within a nat of their optimum (they rank structures), the chosen structure's fit is carried on.
     objective : float
         The log evidence minus the selection rule's penalty per term.
     cv_error : float

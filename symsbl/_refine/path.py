@@ -202,7 +202,7 @@ def _candidates(engine: Engine, start: IdentifiedModel, alpha, theta0, by_name, 
     ``seed``, the evidence's fit on the whole records, the union starts there, its other terms at zero; else (or
     where that runs away) by continuation from the equation error's coefficients."""
     every = np.arange(len(engine.positions))
-    warm = None if seed is None else restarted(seed, engine.passes)
+    warm = None if seed is None else restarted(seed, engine.passes, engine.longest)
     union = None
     if warm is not None:
         near = np.zeros_like(theta0)
@@ -296,6 +296,13 @@ def _key(sol) -> frozenset[int]:
     return frozenset(int(k) for k in sol.active)
 
 
+def _tight(engine: Engine, sol, alpha: np.ndarray):
+    """``sol``, a fit of the path (within :data:`PATH_NATS`), carried on to the fit's own tolerance (``sol`` where
+    that runs away), its passes counted in; the engine's later fits keep that tolerance."""
+    engine.tol = TOL
+    return _finished(engine, sol, alpha) or sol
+
+
 def _finished(engine: Engine, screened, alpha: np.ndarray):
     """The refit of a screened structure carried on from the screen to its optimum (None: it ran away), the
     screen's passes counted in it."""
@@ -308,8 +315,7 @@ def _finished(engine: Engine, screened, alpha: np.ndarray):
 #: 6554 samples rank the structures as the whole record does (the demo's table, a 57344-sample stand-in's choice).
 PATH_SAMPLES = 2**15
 #: Nats within which the path's fits stop: they rank structures whose objectives differ by the penalty per term
-#: (tens of nats), and the structure reported is fitted on to the fit's own tolerance. On a 57344-sample record
-#: the path's fits took 654 passes at 1e-4 nats, 332 at 1 nat, for the same choice.
+#: (tens of nats); the structure reported is fitted on to the fit's own tolerance.
 PATH_NATS = 1.0
 #: Data up to this many times :data:`PATH_SAMPLES` are scored whole: cutting them would save less than the refit
 #: on every sample costs (1 s at 32768 Hz is 32769 samples).
@@ -332,7 +338,7 @@ def _refitted(engine: Engine, sol, records, measured, cost: float, seed: Solutio
     chosen = to_model(engine, sol, {})
     full = Engine(chosen, records, measured, engine.settings, {})
     full.longest = engine.longest
-    warm = None if seed is None else restarted(seed, full.passes)
+    warm = None if seed is None else restarted(seed, full.passes, full.longest)
     refit = None if warm is None else _fit(full, full.base, full.param.theta0, prior(full), warm=warm)
     refit = refit or _fit(full, full.base, full.param.theta0, prior(full))
     return None if refit is None else (full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost))
@@ -387,10 +393,9 @@ def choose_structure(
         sol = _finished(engine, sol, alpha) or sol
     evidence = next((k for k, entry in enumerate(entries) if entry[1] == "evidence"), None)
     fitted = engine  # the reported solution's engine; the path's entries are the scored engine's
-    engine.tol = TOL  # the structure reported is fitted to the fit's own tolerance
     if chosen != evidence:
         shortened = any(a.n_samples != b.n_samples for a, b in zip(scored, records))
-        sol = sol if shortened else (_fit(engine, sol.active, sol.theta, alpha, warm=sol) or sol)
+        sol = sol if shortened else _tight(engine, sol, alpha)
         sol = _every_term_clears(engine, dataclasses.replace(sol, penalty=cost), cost)  # the rule every model keeps
         if shortened:
             cost = rule.nats_per_term(int(sum(r.n_samples for r in records)) * len(measured), n_candidates)
@@ -399,6 +404,8 @@ def choose_structure(
                 fitted, sol = whole
             elif evidence is not None:  # the evidence's structure, fitted on every sample, stays
                 chosen, reason = evidence, f"{reason}; the structure so chosen ran away on every sample"
+            else:
+                sol = _tight(engine, sol, alpha)
     path = _table(engine, entries, sizes, objectives, E, chosen, reason)
     if chosen == evidence:
         meta = dict(refined.metadata.get("refine", {}), noise_floor=floor)

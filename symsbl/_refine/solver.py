@@ -133,8 +133,21 @@ class Solution:
 
 @dataclass(frozen=True)
 class Warm:
-    """Where a fit starts warm: its segments' first rows, their initial states and length, and the noise (the
-    attributes of a :class:`Solution` that a warm start reads)."""
+    """Where a fit starts warm: the attributes of a :class:`Solution` that a warm start reads.
+
+    Attributes
+    ----------
+    X0 : ndarray, shape (n_segments, n_states)
+        The segments' initial states.
+    starts : ndarray of int
+        The segments' first rows (every record's first row among them).
+    length : int
+        The segment length, which the fit keeps.
+    w : ndarray, shape (n_records, n_measured)
+        Noise precisions.
+    ar : ndarray, shape (n_measured, order), optional
+        The autoregressive noise model; None: white noise.
+    """
 
     X0: np.ndarray
     starts: np.ndarray
@@ -143,14 +156,19 @@ class Warm:
     ar: np.ndarray | None = None
 
 
-def restarted(sol: Solution, passes: Passes) -> Warm | None:
+def restarted(sol: Solution, passes: Passes, longest: int | None = None) -> Warm | None:
     """The warm start, on ``passes``' records, of the whole-record fit ``sol`` of the same records or of their first
-    stretches: each record one segment from ``sol``'s initial state, with ``sol``'s noise (None unless ``sol``
-    held one segment per record)."""
+    stretches: each record one segment from ``sol``'s initial state, with ``sol``'s noise. None unless ``sol`` held
+    one segment per record, its model amplifies no state error :data:`PHI_STOP`-fold within them (the continuation
+    would hold such records on shorter segments) and they are no longer than ``longest``."""
     records = passes.records
-    if len(sol.starts) != len(records.starts):
+    length = int(records.lengths.max())
+    reach = horizon(sol.stages)
+    if len(sol.starts) != len(records.starts) or (reach is not None and reach < length):
         return None
-    return Warm(sol.X0.copy(), records.starts.copy(), int(records.lengths.max()), sol.w, sol.ar)
+    if longest is not None and length > longest:
+        return None
+    return Warm(sol.X0.copy(), records.starts.copy(), length, sol.w, sol.ar)
 
 
 def noise_precisions(Y: np.ndarray, valid: np.ndarray, starts=None) -> np.ndarray:
@@ -660,11 +678,14 @@ def fit(
         differences; one row serves every record).
     update_noise, mackay : bool
         Re-estimate the noise precisions; re-estimate the prior precisions (MacKay).
+    tol : float
+        Nats of the objective within which the last round stops (:data:`TOL`; earlier stages and rounds stop
+        within :data:`ROUND_NATS`).
     warm : Solution or Warm, optional
         A solution of a nearby structure (or its :func:`restarted` whole records): its segments, initial states
         and noise are the start, and the segments do not grow again (the structure's optimum is near).
     longest : int, optional
-        The segments grow to at most this length (default: whole records).
+        The segments grow to at most this length (default: whole records; a warm start keeps its own).
     noise : {"white", "auto"} or int
         The noise model: white, autoregressive of the order chosen by BIC on the final stage's residual, or of
         a given order (its coefficients estimated alternately with the model's; see
