@@ -221,6 +221,23 @@ def test_a_page_as_the_browser_shows_it_must_hold_its_figures_and_typeset_maths(
         assert (DOCS / f"{page.rstrip('/')}.md").is_file() or (DOCS / page / "index.md").is_file(), page
 
 
+def test_a_browser_that_hangs_once_is_tried_again_and_one_that_always_fails_fails_the_page(monkeypatch):
+    shots = _hook("screenshots")
+    outputs = iter([None, "<html></html>"])
+    tries = []
+
+    def flaky(chromium, profile, *args):
+        tries.append(args)
+        return next(outputs)
+
+    monkeypatch.setattr(shots, "_chromium", flaky)
+    assert shots._captured("chromium", "profile", "--dump-dom", "url") == "<html></html>"
+    assert len(tries) == 2
+    monkeypatch.setattr(shots, "_chromium", lambda *args: None)
+    assert shots._captured("chromium", "profile", "--dump-dom", "url") is None
+    assert shots.ATTEMPTS == 2
+
+
 def test_the_explanations_typeset_their_equations():
     maths = _hook("offline_maths")
     for page in ("explanation/sparse-bayes.md", "explanation/weak-form.md", "explanation/latent-states.md"):

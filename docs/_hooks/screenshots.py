@@ -82,6 +82,9 @@ class _Quiet(http.server.SimpleHTTPRequestHandler):
 
 #: Seconds one page may take in the browser.
 TIMEOUT = 120
+#: Captures of a page tried before it fails: headless Chromium now and then hangs on a page that it renders at
+#: the next try (two builds in four on one machine, a different page each time).
+ATTEMPTS = 2
 
 
 def _chromium(chromium: str, profile: str, *args: str) -> str | None:
@@ -103,6 +106,15 @@ def _chromium(chromium: str, profile: str, *args: str) -> str | None:
     return out if run.returncode == 0 else None
 
 
+def _captured(chromium: str, profile: str, *args: str) -> str | None:
+    """:func:`_chromium` tried up to :data:`ATTEMPTS` times: the first output it gives, None when every try failed."""
+    for _ in range(ATTEMPTS):
+        out = _chromium(chromium, profile, *args)
+        if out is not None:
+            return out
+    return None
+
+
 def _check(chromium: str, profile: str, site: Path, url: str, page: str, name: str) -> list[str]:
     """What is wrong with ``page`` as the browser shows it at ``url``, its screenshot saved (empty: nothing)."""
     built = site / page / "index.html"
@@ -110,9 +122,9 @@ def _check(chromium: str, profile: str, site: Path, url: str, page: str, name: s
         return ["not in the built site"]
     shot = site / "screenshots" / f"{name}.png"
     shot.unlink(missing_ok=True)  # a screenshot left by an earlier build is no evidence of this one
-    if _chromium(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url) is None:
+    if _captured(chromium, profile, "--window-size=1280,1800", f"--screenshot={shot}", url) is None:
         return ["the browser failed or hung taking its screenshot"]
-    rendered = _chromium(chromium, profile, "--dump-dom", url)
+    rendered = _captured(chromium, profile, "--dump-dom", url)
     if rendered is None or "</html>" not in rendered:
         return ["the browser failed or hung rendering it"]
     found = problems(built.read_text(), rendered)
