@@ -156,12 +156,7 @@ def beyond_library(
 def _positions(engine: Engine, model: IdentifiedModel) -> list[int]:
     """The engine's coefficients that are ``model``'s terms (by equation and name)."""
     wanted = {(eq.lhs, t.name) for eq in model.equations if not eq.fixed for t in eq.terms if not t.fixed}
-    out = []
-    for k, (i, j) in enumerate(engine.positions):
-        eq = engine.full.equations[i]
-        if (eq.lhs, eq.terms[j].name) in wanted:
-            out.append(k)
-    return out
+    return [k for k, name in enumerate(engine.names) if name in wanted]
 
 
 def _fit(engine: Engine, active, theta0: np.ndarray, alpha: np.ndarray, warm=None, screen: int | None = None):
@@ -190,10 +185,9 @@ def _union(start: IdentifiedModel, refined: IdentifiedModel, records, measured, 
     theta0[engine.base] = engine.param.theta0[engine.base]
     by_name = {(eq.lhs, t.name): t.coef for eq in start.equations for t in eq.terms}
     base = set(engine.base.tolist())
-    for k, (i, j) in enumerate(engine.positions):
+    for k, name in enumerate(engine.names):
         if k not in base:
-            eq = engine.full.equations[i]
-            theta0[k] = by_name.get((eq.lhs, eq.terms[j].name), 0.0)
+            theta0[k] = by_name.get(name, 0.0)
     return engine, prior(engine), theta0, by_name
 
 
@@ -225,9 +219,7 @@ def _own(engine: Engine, active, theta0: np.ndarray, by_name: dict) -> np.ndarra
     """``theta0`` with the coefficients ``active`` at the equation error's values."""
     own = theta0.copy()
     for k in active:
-        i, j = engine.positions[k]
-        eq = engine.full.equations[i]
-        own[k] = by_name[(eq.lhs, eq.terms[j].name)]
+        own[k] = by_name[engine.names[k]]
     return own
 
 
@@ -339,8 +331,9 @@ def _refitted(engine: Engine, sol, records, measured, cost: float, seed: Solutio
     full = Engine(chosen, records, measured, engine.settings, {})
     full.longest = engine.longest
     warm = None if seed is None else restarted(seed, full.passes, full.longest)
-    refit = None if warm is None else _fit(full, full.base, full.param.theta0, prior(full), warm=warm)
-    refit = refit or _fit(full, full.base, full.param.theta0, prior(full))
+    alpha = prior(full)
+    refit = None if warm is None else _fit(full, full.base, full.param.theta0, alpha, warm=warm)
+    refit = refit or _fit(full, full.base, full.param.theta0, alpha)
     return None if refit is None else (full, _every_term_clears(full, dataclasses.replace(refit, penalty=cost), cost))
 
 
