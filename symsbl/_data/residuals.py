@@ -356,7 +356,7 @@ def predictable(e: np.ndarray, lags: int = 25) -> float:
         return 0.0
     X = np.column_stack([x[lags - i : n - i] for i in range(1, lags + 1)])
     y = x[lags:]
-    coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+    coef = lstsq(X, y)
     total = float(y @ y)
     return float(1.0 - np.sum((y - X @ coef) ** 2) / total) if total > 0 else 0.0
 

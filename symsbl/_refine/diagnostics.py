@@ -197,7 +197,9 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
         return float("nan")
     e, where = np.concatenate(es), np.concatenate(at)
     rows = np.concatenate([where - k for k in range(L + 1)])  # every lag's rows, scaled once together
-    A = np.hstack(np.split(trajectory_basis(X[rows], U[rows], (X[::step], U[::step])), L + 1))
+    once, back = np.unique(rows, return_inverse=True)  # each sample's functions once: the lags share most rows
+    B = trajectory_basis(X[once], U[once], (X[::step], U[::step]))[back.reshape(L + 1, -1)]
+    A = B.transpose(1, 0, 2).reshape(B.shape[1], -1)  # the lags side by side
     if e.size <= 4 * A.shape[1]:
         return float("nan")
     return explained_out_of_sample(e, A)
