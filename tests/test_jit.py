@@ -36,7 +36,7 @@ def fresh(monkeypatch, tmp_path):
     directory = tmp_path / "jit"
     monkeypatch.setenv(jit_module.CACHE_ENV, str(directory))
     monkeypatch.setattr(jit_module, "_MEMORY", OrderedDict())
-    monkeypatch.setattr(jit_module, "_SEEN", set())
+    monkeypatch.setattr(jit_module, "_SEEN", {})
     monkeypatch.setattr(jit_module, "_UNUSABLE", set())
     monkeypatch.setattr(jit_module, "_WARNED", set())
     return directory
@@ -45,7 +45,7 @@ def fresh(monkeypatch, tmp_path):
 def forget(monkeypatch):
     """As a new process: nothing in memory, and no compiler that would run."""
     monkeypatch.setattr(jit_module, "_MEMORY", OrderedDict())
-    monkeypatch.setattr(jit_module, "_SEEN", set())
+    monkeypatch.setattr(jit_module, "_SEEN", {})
     monkeypatch.setattr(jit_module, "_UNUSABLE", set())
     monkeypatch.setattr(jit_module, "_WARNED", set())
 
@@ -79,6 +79,15 @@ def test_a_short_first_request_compiles_nothing_and_the_second_compiles(fresh):
     assert not is_compiled and fn is not None and not list(fresh.iterdir())
     fn, is_compiled = jit_module.jit_wrap(mapped(2), "f_chunk", "auto", SimulationError, only_cached=True)
     assert is_compiled and len(list(fresh.iterdir())) == 1
+
+
+def test_short_requests_compile_once_their_work_together_repays_it(fresh):
+    for n, compiled in enumerate((False, False, True)):  # 40 + 40 + 40 units of work against 100
+        fn, is_compiled = jit_module.jit_wrap(
+            mapped(5), "f_chunk", "auto", SimulationError, only_cached=True, work=40, worth=100
+        )
+        assert is_compiled is compiled and len(list(fresh.iterdir())) == int(compiled), n
+        np.testing.assert_allclose(evaluate(fn), np.linspace(-1.0, 2.0, 16) ** 5 * np.sin(0.7), rtol=1e-14)
 
 
 def test_a_damaged_library_is_built_again(fresh, monkeypatch):

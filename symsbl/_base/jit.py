@@ -81,7 +81,7 @@ LARGE_SOURCE = MAX_AUTO_SOURCE
 _LARGE_FLAGS = ("-O1", "-march=native", "-w")
 _MEMORY: OrderedDict[tuple, ca.Function] = OrderedDict()
 _MEMORY_SIZE = 64
-_SEEN: set = set()  # keys asked for without compiling (jit="auto" on short data)
+_SEEN: dict = {}  # keys asked for without compiling (jit="auto" on short data), and the work asked so far
 _UNUSABLE: set = set()  # keys whose generated code cannot run here: not generated again in the process
 _WARNED: set[str] = set()  # reasons already warned about: one warning each per process
 _SCRATCH: str | None = None
@@ -162,6 +162,8 @@ def jit_wrap(
     only_cached: bool = False,
     key=None,
     max_source: int = MAX_AUTO_SOURCE,
+    work: int = 0,
+    worth: int = 0,
 ) -> tuple[ca.Function, bool]:
     """``fn`` compiled as one C function (an MX wrapper compiled with gcc), or ``fn`` itself.
 
@@ -188,6 +190,10 @@ def jit_wrap(
     max_source : int
         Largest C source compiled under ``jit="auto"`` (bytes; default :data:`MAX_AUTO_SOURCE`): a caller
         that will call the function many times (a fit's passes) may allow more.
+    work, worth : int
+        With ``only_cached`` and ``worth`` > 0: compile once the work of every request for this function (this
+        one's ``work`` included, in the caller's units) reaches ``worth``, rather than from the second request
+        (a held-out record simulated twice does not repay a compilation that costs a hundred such runs).
 
     Returns
     -------
@@ -217,7 +223,9 @@ def jit_wrap(
         return fn, False
     args = [ca.MX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
     wrapper = ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
-    build = not only_cached or key in _SEEN  # compiled from the second request on: a structure used again
+    done = _SEEN.get(key, 0)
+    # compiled from the second request on (a structure used again), or once the work asked for repays it
+    build = not only_cached or (done + work >= worth if worth > 0 else key in _SEEN)
     try:
         compiled = _compile(wrapper, cc, build, max_source if jit == "auto" else None)
     except (RuntimeError, OSError, subprocess.CalledProcessError) as err:
@@ -231,7 +239,7 @@ def jit_wrap(
     if isinstance(compiled, str):
         return _unusable(fn, key, compiled, jit, error)
     if compiled is None:
-        _SEEN.add(key)
+        _SEEN[key] = done + work
         return fn, False
     _MEMORY[key] = compiled
     if len(_MEMORY) > _MEMORY_SIZE:

@@ -41,8 +41,9 @@ def first_nonfinite_row(a: np.ndarray) -> int | None:
     return int(bad[0]) if bad.size else None
 
 
-#: ``jit="auto"`` compiles an RK4 chunk only for runs of at least this many RK4 steps (or on a cache hit):
-#: compiling costs ~0.5 s, the SX virtual machine ~0.5-1 us per step, the compiled chunk ~0.07-0.1 us.
+#: ``jit="auto"`` compiles an RK4 chunk only for runs of at least this many RK4 steps, or once the runs of the same
+#: structure together reach it (or on a cache hit): compiling costs ~0.2-0.5 s, the SX virtual machine ~0.5-1 us
+#: per step, the compiled chunk ~0.07-0.1 us.
 JIT_MIN_STEPS = 2**18
 
 
@@ -56,7 +57,9 @@ def chunk_function(step: ca.Function, chunk: int, jit, n_work: int) -> ca.Functi
     """
     acc = step.mapaccum("rk4_chunk", chunk)
     lazy = jit == "auto" and n_work < JIT_MIN_STEPS
-    fn, _ = jit_wrap(acc, f"rk4_chunk_{chunk}", jit, SimulationError, only_cached=lazy)
+    fn, _ = jit_wrap(
+        acc, f"rk4_chunk_{chunk}", jit, SimulationError, only_cached=lazy, work=n_work, worth=JIT_MIN_STEPS
+    )
     return fn
 
 
@@ -178,7 +181,9 @@ def _batch_chunk(step: ca.Function, n_draws: int, chunk: int, jit, n_work: int) 
         args.append(ca.MX.sym("ud", step.size1_in(4), chunk))
         call.append(args[4])
     wrapper = ca.Function("rk4_batch", args, [acc(*call)], ["x", "t", "dt", "p", "ud"][: len(args)], ["x_next"])
-    fn, _ = jit_wrap(wrapper, "rk4_batch", jit, SimulationError, only_cached=lazy, key=key)
+    fn, _ = jit_wrap(
+        wrapper, "rk4_batch", jit, SimulationError, only_cached=lazy, key=key, work=n_work, worth=JIT_MIN_STEPS
+    )
     return fn
 
 
