@@ -183,7 +183,7 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
     :data:`TRAJECTORY_LAGS` before, within each segment (``spans``: their starts and ends, each simulated from its
     own initial state); every k-th sample beyond :data:`TRAJECTORY_ROWS`."""
     L, p = TRAJECTORY_LAGS, len(ar)
-    step = max(1, r.size // TRAJECTORY_ROWS)
+    step = max(1, -(-r.size // TRAJECTORY_ROWS))  # at most TRAJECTORY_ROWS rows: of 98304 samples every second
     es, at = [], []
     for a, b in zip(*spans):
         if b - a <= p + 4 * (L + 1):
