@@ -7,8 +7,8 @@ differs from the SVD's by about ``cond * eps`` (1e-10 relative), far below what 
 rank-deficient or nearly collinear design (the lags of a pure sine) is solved from the design's QR factor
 instead: ``X = Q R`` and, for its first ``p`` columns, ``X[:, :p] = Q[:, :p] R[:p, :p]``, whose singular values
 are the design's, so the SVD of the small ``R[:p, :p]`` truncates as an SVD of ``X[:, :p]`` would (numpy's
-default cut), and every ``p`` shares the one factorisation (measured: the 30 autoregressive orders of a sine's
-6000 samples, 0.7 s by an SVD each, 0.02 s so).
+default cut), and every ``p`` shares the one factorisation (measured: the 30 autoregressive orders of a noise-free
+sine's 98304 samples, 0.64 s by an SVD each, 0.20 s so).
 """
 
 from __future__ import annotations
