@@ -199,7 +199,7 @@ def _traced(r: np.ndarray, X: np.ndarray, U: np.ndarray, spans: tuple, ar) -> fl
     rows = np.concatenate([where - k for k in range(L + 1)])  # every lag's rows, scaled once together
     once, back = np.unique(rows, return_inverse=True)  # each sample's functions once: the lags share most rows
     B = trajectory_basis(X[once], U[once], (X[::step], U[::step]))[back.reshape(L + 1, -1)]
-    A = B.transpose(1, 0, 2).reshape(B.shape[1], -1)  # the lags side by side
+    A = B.transpose(1, 0, 2).reshape(B.shape[1], B.shape[0] * B.shape[2])  # the lags side by side
     if e.size <= 4 * A.shape[1]:
         return float("nan")
     return explained_out_of_sample(e, A)

@@ -42,8 +42,8 @@ def first_nonfinite_row(a: np.ndarray) -> int | None:
 
 
 #: ``jit="auto"`` compiles an RK4 chunk only for runs of at least this many RK4 steps, or once the runs of the same
-#: structure together reach it (or on a cache hit): compiling costs ~0.2-0.5 s, the SX virtual machine ~0.5-1 us
-#: per step, the compiled chunk ~0.07-0.1 us.
+#: structure and chunk length together reach it (or on a cache hit): compiling costs ~0.2-0.5 s, the SX virtual
+#: machine ~0.5-1 us per step, the compiled chunk ~0.07-0.1 us.
 JIT_MIN_STEPS = 2**18
 
 
