@@ -56,7 +56,7 @@ def chunk_function(step: ca.Function, chunk: int, jit, n_work: int) -> ca.Functi
     step graph and the chunk length.
     """
     acc = step.mapaccum("rk4_chunk", chunk)
-    lazy = jit == "auto" and n_work < JIT_MIN_STEPS
+    lazy = jit == "auto"  # compiled once this run, with the structure's earlier ones, reaches JIT_MIN_STEPS
     fn, _ = jit_wrap(
         acc, f"rk4_chunk_{chunk}", jit, SimulationError, only_cached=lazy, work=n_work, worth=JIT_MIN_STEPS
     )
@@ -161,7 +161,7 @@ def _batch_chunk(step: ca.Function, n_draws: int, chunk: int, jit, n_work: int) 
     The step is mapped over the draws (inputs of the original size, the time and the input, are shared),
     then accumulated over the chunk; the parameters enter once and are repeated inside the compiled code.
     """
-    lazy = jit == "auto" and n_work < JIT_MIN_STEPS
+    lazy = jit == "auto"  # compiled once this run, with the structure's earlier ones, reaches JIT_MIN_STEPS
     key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "rk4_batch", n_draws, chunk)
     if jit is not False:
         cached = jit_lookup(key)
