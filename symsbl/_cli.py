@@ -404,8 +404,16 @@ def _latent_summary(info: dict) -> str:
         if info["periodic"]
         else "a transient record; noise"
     )
+    misfit = info.get("misfit", {})
+    host = (
+        f" on {info['host']} (each position's linear misfit over its noise: "
+        + ", ".join(f"{k} {v:.2g}" for k, v in misfit.items())
+        + ")"
+        if misfit
+        else ""
+    )
     return (
-        f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} "
+        f"latent state {info['latent']}{host}: {info['verdict']}; log evidence by branch: {branches} "
         f"({record} {info['noise_std_of_average']:.3g})"
     )
 

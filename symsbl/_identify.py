@@ -90,8 +90,9 @@ def identify(
     states : sequence of str, optional
         The model's states, in order (default: the data's). A state absent from the data is
         unmeasured: the velocity of a pair in ``kinematics``, or else *latent*, a state with its own
-        law that no record holds (the hysteretic force of a Bouc-Wen oscillator). A latent state is
-        identified for one position-velocity pair and one input, from one record or several jointly, best of
+        law that no record holds (the hysteretic force of a Bouc-Wen oscillator). One latent state is
+        identified on a structure of position-velocity pairs (every position measured; on several, the
+        hidden force's host is found) and one input, from one record or several jointly, best of
         whole periods of a periodic input (see *Latent states* in the documentation): ``metadata["latent"]`` then
         gives the verdict
         ("hidden" or "nothing hidden"), and the model is always refined by output error: ``refine=False`` and a

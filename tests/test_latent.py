@@ -198,6 +198,99 @@ def test_hidden_law_from_a_record_that_is_not_periodic():
     assert np.sqrt(np.mean((predicted - truth) ** 2)) / truth.std() < 0.01  # 0.44 %: the noise is 1 %
 
 
+def chain_with_dahl_friction(m1=1.6, m2=0.8, k1=2.5e4, k2=1.2e4, c1=5.0, c2=2.0, s=3e4, Fc=6.0):
+    """Two masses, the first held to the ground by a spring, a damper and Dahl friction (``z' = s v1 - (s / Fc)
+    |v1| z``), the force on the second."""
+    y1, v1, y2, v2, z, F = (ca.SX.sym(n) for n in ("y1", "v1", "y2", "v2", "z", "F"))
+    rhs = (
+        v1,
+        (-k1 * y1 - c1 * v1 - k2 * (y1 - y2) - c2 * (v1 - v2) - z) / m1,
+        v2,
+        (F - k2 * (y2 - y1) - c2 * (v2 - v1)) / m2,
+        s * v1 - (s / Fc) * ca.fabs(v1) * z,
+    )
+    return symsbl.OdeSystem((y1, v1, y2, v2, z), (F,), rhs, (), (), "chain_dahl")
+
+
+def chain_response(system, rms, seed, periods, period=2.0):
+    t = np.arange(int(periods * period * FS)) / FS
+    u = symsbl.Multisine(rms=rms, f_min=2.0, f_max=80.0, seed=seed, period=period)
+    return symsbl.simulate(system, t, inputs=symsbl.Sampled(t, u(t), kind="periodic"), method="rk4", substeps=8)
+
+
+def identify_chain(system, rms, seed, noise, noise_seed):
+    """Three steady-state periods of both positions, with white noise, identified with the friction's state
+    latent."""
+    clean = chain_response(system, rms=rms, seed=seed, periods=4).slice(int(2.0 * FS))
+    rng = np.random.default_rng(noise_seed)
+    noisy = [clean.column(n) + noise * clean.column(n).std() * rng.standard_normal(clean.t.size) for n in ("y1", "y2")]
+    record = symsbl.Trajectory(clean.t - clean.t[0], np.column_stack(noisy), clean.inputs, ("y1", "y2"), ("F",))
+    y1, v1, y2, v2, z, F = symsbl.symbols("y1 v1 y2 v2 z F")
+    library = symsbl.paper([y1, v1, y2, v2, z], [F], degree=3)
+    return symsbl.identify(record, library, states=("y1", "v1", "y2", "v2", "z"), kinematics="y1:v1,y2:v2")
+
+
+def chain_errors(system, model, rms, seed) -> dict:
+    """Each position's free-run error over the second period of a fresh multisine from rest, relative to its
+    spread."""
+    truth, predicted = (chain_response(s, rms=rms, seed=seed, periods=2) for s in (system, model.to_system()))
+    tail = slice(int(2.0 * FS), None)  # the initial transient gone
+    return {
+        n: float(
+            np.sqrt(np.mean((predicted.column(n)[tail] - truth.column(n)[tail]) ** 2)) / truth.column(n)[tail].std()
+        )
+        for n in ("y1", "y2")
+    }
+
+
+@pytest.mark.slow
+def test_hidden_friction_on_one_mass_of_a_chain():
+    """Both positions measured, the friction's state hidden, the force on the other mass: the host is found (its
+    hidden force has a law, the other's does not), the law and every coefficient within 1 %, and a fresh
+    multisine predicted far below the noise's level."""
+    system = chain_with_dahl_friction()
+    model = identify_chain(system, rms=25.0, seed=1, noise=0.005, noise_seed=4)
+    info = model.metadata["latent"]
+    assert info["verdict"] == "hidden" and info["host"] == "y1"
+    assert info["misfit"]["y1"] > 2 and 0.7 < info["misfit"]["y2"] < 1.4  # the second mass: linear, to its noise
+    from symsbl._cli import _latent_summary
+
+    assert _latent_summary(info).startswith("latent state z on y1 (each position's linear misfit over its noise")
+    law, host = model.equation("z"), model.equation("v1")
+    assert sorted(law.names) == ["v1", "z*Abs(v1)"]
+    scale = -host.coef("z")  # the model's z is the friction force times scale / m1
+    assert law.coef("z*Abs(v1)") == pytest.approx(-3e4 / 6.0, rel=0.01)
+    assert law.coef("v1") * scale == pytest.approx(3e4 / 1.6, rel=0.01)
+    truth = {"y1": -(2.5e4 + 1.2e4) / 1.6, "y2": 1.2e4 / 1.6, "v1": -7.0 / 1.6, "v2": 2.0 / 1.6}
+    assert sorted(host.names) == sorted([*truth, "z"])
+    for name, value in truth.items():
+        assert host.coef(name) == pytest.approx(value, rel=0.01), name
+    assert model.equation("v2").coef("F") == pytest.approx(1 / 0.8, rel=0.01)
+    assert max(chain_errors(system, model, rms=20.0, seed=7).values()) < 0.001  # measured: 0.025 %
+
+
+@pytest.mark.slow
+def test_hysteresis_on_the_driven_mass_of_a_chain():
+    """A Bouc-Wen hysteresis on the mass the force drives: the host's own least-squares fit books the hysteresis
+    on its neighbour's damping (-30 against +2), and the reciprocal drive (the neighbour's own coupling to the
+    host, times one ratio) is the one the split keeps; a fresh multisine is predicted within 1 %."""
+    y1, v1, y2, v2, z, F = (ca.SX.sym(n) for n in ("y1", "v1", "y2", "v2", "z", "F"))
+    rhs = (
+        v1,
+        F - 3e4 * y1 - 3.0 * v1 - 2e4 * (y1 - y2) - 2.0 * (v1 - v2) - z,
+        v2,
+        (-2e4 * (y2 - y1) - 2.0 * (v2 - v1)) / 1.5,
+        3e4 * v1 - 500.0 * ca.fabs(v1) * z + 200.0 * v1 * ca.fabs(z),
+    )
+    system = symsbl.OdeSystem((y1, v1, y2, v2, z), (F,), rhs, (), (), "chain_bouc_wen")
+    model = identify_chain(system, rms=40.0, seed=5, noise=0.01, noise_seed=9)
+    info = model.metadata["latent"]
+    assert info["verdict"] == "hidden" and info["host"] == "y1"
+    assert info["drive"] == "reciprocal" and info["driven"]
+    assert model.equation("v1").coef("F") == pytest.approx(1.0, rel=0.01)  # z in newtons: the input's units
+    assert max(chain_errors(system, model, rms=30.0, seed=8).values()) < 0.01  # measured: 0.37 %
+
+
 @pytest.mark.slow
 def test_nothing_hidden_in_a_linear_oscillator():
     record, _ = periodic_record(symsbl.systems.linear(m=1.5, c=6.0, k=5e4), noise=0.01)
@@ -217,8 +310,16 @@ def test_settings_outside_the_one_identified_are_refused():
     record = symsbl.Trajectory(t, np.sin(t)[:, None], np.cos(t)[:, None], ("x1",), ("F",))
     x1, x2, x3, x4, F = symsbl.symbols("x1 x2 x3 x4 F")
     library = symsbl.paper([x1, x2, x3, x4], [F], degree=2)
-    with pytest.raises(symsbl.DataError, match=r"^states: expected a position, its velocity and one latent state"):
+    refused = r"^states: expected positions, their velocities and one latent state"
+    with pytest.raises(symsbl.DataError, match=refused):  # two latent states
         symsbl.identify(record, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
+    with pytest.raises(symsbl.DataError, match=refused):  # a state outside every pair: not a structure of masses
+        symsbl.identify(record, library, states=("x1", "x3"))
+    (x5,) = symsbl.symbols("x5")
+    library = symsbl.paper([x1, x2, x3, x4, x5], [F], degree=1)
+    velocity = symsbl.Trajectory(t, np.column_stack([np.sin(t), np.cos(t)]), np.cos(t)[:, None], ("x1", "x4"), ("F",))
+    with pytest.raises(symsbl.DataError, match=r"^state 'x3': expected a column of the data \(a measured position\)"):
+        symsbl.identify(velocity, library, states=("x1", "x2", "x3", "x4", "x5"), kinematics="x1:x2,x3:x4")
 
 
 def test_options_the_latent_path_cannot_honour_are_refused_in_one_line():

@@ -20,10 +20,14 @@ reconstructs it, screens its law and settles the structure by output error on wh
    integrates to a memoryless spring ``z = G(y)``);
 5. as asked: the winner refined once more with the caller's doubts and model choice (:class:`Fitting`).
 
-Several records are screened on the one whose position varies most and refined jointly.
+Several records are screened on the one whose position varies most and refined jointly. On a
+structure of several masses (every position measured), :mod:`.hosts` finds the pair whose velocity
+equation the hidden force enters and the drive of that mass by the rest of the structure; stages 1-3
+run on the host with the drive as its input, and stage 4 refines every equation together.
 
 Convention: the latent state enters the velocity equation with the coefficient ``-1/m`` of the
-split, held fixed: it is a force in the units of the input (to the precision of that ``m``).
+split, held fixed: it is a force in the units of the input (to the precision of that ``m``); on a
+host the input does not act on, a force per unit mass.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from .._refine import RefineOptions, refine
 from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
 from .branches import Branches, Screened
+from .hosts import drives, host_of, same_cut
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
 from .skeleton import fit_linear, split
@@ -57,23 +62,29 @@ INPUT_RESOLUTION = 0.35
 
 
 def _check_setting(trajectories, names, pairs, latent, library: Library):
-    """The one setting identified: one position-velocity pair, one latent state, one input."""
-    if len(latent) != 1 or len(pairs) != 1 or len(names) != 3:
+    """The setting identified: one latent state on a structure of position-velocity pairs, every position
+    measured, one input."""
+    members = {n for pair in pairs for n in pair}
+    others = [n for n in names if n not in members and n not in latent]
+    if len(latent) != 1 or not pairs or others:
         raise DataError(
             expected(
                 "states",
-                "a position, its velocity and one latent state (e.g. --states y,v,z --kinematics y:v)",
+                "positions, their velocities and one latent state (e.g. --states y,v,z --kinematics y:v, or "
+                "y1,v1,y2,v2,z --kinematics y1:v1,y2:v2)",
                 f"states {list(names)} with kinematics {[f'{x}:{v}' for x, v in pairs]} and latent {list(latent)}",
-                "a latent state is identified for a single-degree-of-freedom oscillator",
+                "a latent state is identified on a structure of masses, each position measured",
                 raw=True,
             )
         )
     record = trajectories[0]
-    position = pairs[0][0]
-    if position not in record.state_names:
-        raise DataError(
-            expected(f"state {position!r}", "a column of the data (the measured position)", "no such column", raw=True)
-        )
+    for position, _ in pairs:
+        if position not in record.state_names:
+            raise DataError(
+                expected(
+                    f"state {position!r}", "a column of the data (a measured position)", "no such column", raw=True
+                )
+            )
     if len(record.input_names) != 1:
         raise DataError(
             expected("inputs", "one input (the force) when a state is latent", list(record.input_names), raw=True)
@@ -135,12 +146,12 @@ class Fitting:
 def identify_latent(
     trajectories, library: Library, names, pairs, latent, fitting: Fitting = Fitting()
 ) -> IdentifiedModel:
-    """Identify a single-degree-of-freedom oscillator with one latent state from its position alone.
+    """Identify a structure of masses with one latent state from its positions alone (one mass: an oscillator).
 
     Parameters
     ----------
     trajectories : list of Trajectory
-        Records holding the position and the input: whole periods of a periodic input (best: the
+        Records holding the positions and the input: whole periods of a periodic input (best: the
         noise is then measured by the periods' scatter and the derivatives are exact), or transient
         records of a broadband input. The law is screened on the record whose position varies most; every
         branch is refined on all of them jointly, each from its own initial state.
@@ -148,9 +159,9 @@ def identify_latent(
         Candidates over the states and the input; the law of the latent state uses its homogeneous
         terms in (velocity, latent), the memoryless alternative its homogeneous terms in (position, velocity).
     names : sequence of str
-        The states ``(position, velocity, latent)`` in the model's order.
+        The states (positions, velocities and the latent state) in the model's order.
     pairs : sequence of (str, str)
-        The one position-velocity pair.
+        The position-velocity pairs, every position measured.
     latent : sequence of str
         The one latent state.
     fitting : Fitting
@@ -164,12 +175,12 @@ def identify_latent(
     """
     _check_setting(trajectories, names, pairs, latent, library)
     clock = _Clock()
-    (y, v), z, u = pairs[0], latent[0], trajectories[0].input_names[0]
-    cuts, periodic, lead = _periods_of(trajectories, y, u)
+    z, u = latent[0], trajectories[0].input_names[0]
+    cuts, periodic, lead = _periods_of(trajectories, pairs[0][0], u)
     periods = cuts[lead]
-    stages = _screen(Spectra(periods, periodic), library, (y, v, z, u), fitting, clock)
+    (y, v), stages, drive, misfit = _host(trajectories[lead], periods, periodic, library, pairs, (z, u), fitting, clock)
     symbols = {s.name(): s for s in library.variables}
-    builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z)
+    builder = Branches(tuple(symbols[n] for n in names), symbols[u], y, v, z, drive)
     starts = builder.starts(stages)
     band = max(2, math.ceil(2 * math.pi * stages.spectra.f_max / stages.spectra.fs / INPUT_RESOLUTION))
     options = fitting.branch_options(periodic, band)
@@ -183,8 +194,30 @@ def identify_latent(
     chosen = _as_asked(fits[best], data, candidates.get(best), options, fitting, clock)
     final = builder.with_latent(chosen, keep=(verdict == "hidden"))
     summary = _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
-    summary.update(records=len(data), screened_on=lead)
+    summary.update(records=len(data), screened_on=lead, host=y, misfit=misfit)
+    if drive is not None:
+        summary.update(drive=drive.kind, driven=drive.driven)
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+def _host(record, cut, periodic: bool, library: Library, pairs, channels, fitting: Fitting, clock):
+    """The host pair of the latent state, its stages, its drive (None on one degree of freedom: the input) and
+    each position's misfit: on several degrees of freedom, the pair whose linear fit leaves most beyond its
+    noise, driven as the split explains best (see :mod:`.hosts`)."""
+    z, u = channels
+    if len(pairs) == 1:
+        stages = _screen(Spectra(cut, periodic), library, (*pairs[0], z, u), fitting, clock)
+        return pairs[0], stages, None, {}
+    spectra = {y: Spectra(same_cut(cut, record.column(y)), periodic) for y, _ in pairs}
+    inputs = {u: spectra[pairs[0][0]].u}
+    values = {n: x for y, v in pairs for n, x in ((y, spectra[y].y), (v, spectra[y].v))} | inputs
+    (y, v), misfit = host_of(spectra, pairs, inputs)
+    screened = [
+        (_screen(spectra[y].driven_by(d.u), library, (y, v, z, u), fitting, clock, values), d)
+        for d in drives(spectra, pairs, inputs, (y, v))
+    ]
+    stages, drive = min(screened, key=lambda s: s[0].skeleton.criterion)
+    return (y, v), stages, drive, misfit
 
 
 def _periods_of(trajectories, y: str, u: str):
@@ -266,9 +299,10 @@ def _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
     }
 
 
-def _screen(spectra: Spectra, library: Library, channels, fitting: Fitting, clock) -> Screened:
+def _screen(spectra: Spectra, library: Library, channels, fitting: Fitting, clock, values=None) -> Screened:
     """Stages 1-3: the linear skeleton, its split from the hidden force, and the screens of the hidden law and of
-    the memoryless alternative; ``channels`` names the position, velocity, latent state and input."""
+    the memoryless alternative; ``channels`` names the position, velocity, latent state and input, ``values`` the
+    samples of the structure's other variables."""
     y, v, z, u = channels
     linear = fit_linear(spectra)
     clock("linear skeleton")
@@ -278,7 +312,7 @@ def _screen(spectra: Spectra, library: Library, channels, fitting: Fitting, cloc
         law_terms = [Term(symbols[v]), *law_terms]
     force_terms = homogeneous_terms(library.terms, {y, v}, exclude={y, v, "1"})
     weak = WeakForm(spectra)
-    samples = {y: spectra.y, v: spectra.v, u: spectra.u}
+    samples = {y: spectra.y, v: spectra.v, u: spectra.u} | (values or {})
     law_columns = evaluate(law_terms, library.variables, fitting.chunk_size, fitting.jit)
 
     def columns_of(zvalues):

@@ -6,10 +6,13 @@
 
 Each is written in the states ``(y, v, z)`` as ``v' = u/m - k/m y - c/m v - ... - z/m``; the
 coefficient of ``z`` is held at the split's ``-1/m`` (the scale convention: ``z`` is a force in the
-units of ``u``). The verdict takes the branch of highest output-error log evidence; the hidden one
-must beat the others by the per-term penalty ``1/2 log N + log M`` and have a law that is not
-``z' = v g(z)``, which integrates to ``z = G(y)``, an elastic force that the memoryless branch
-names directly.
+units of ``u``). On several degrees of freedom the host's ``u`` is its drive ``d`` (see :mod:`.hosts`),
+every other velocity equation starts from its least-squares fit, and ``z`` is in the input's units where
+the input acts on the host, else per unit mass.
+
+The verdict takes the branch of highest output-error log evidence; the hidden one must beat the others
+by the per-term penalty ``1/2 log N + log M`` and have a law that is not ``z' = v g(z)``, which
+integrates to ``z = G(y)``, an elastic force that the memoryless branch names directly.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from .._base.rule import SelectionRule
 from .._model import Equation, IdentifiedModel, TermEstimate
 from .._regression.rvm import RVM
 from .._symbolic.library import Library
+from .hosts import Drive
 from .periodic import Spectra
 from .skeleton import Skeleton
 
@@ -69,21 +73,28 @@ class Screened:
 
 
 class Branches:
-    """Models of the three branches in the states ``(y, v, z)``.
+    """Models of the three branches in the states ``(y, v, z)``, or of a structure whose host is ``(y, v)``.
 
     Parameters
     ----------
     states : tuple of casadi.SX
-        ``(y, v, z)`` symbols in the model's order.
+        The model's states in its order: ``(y, v, z)`` on one degree of freedom.
     u : casadi.SX
         The input.
     y, v, z : str
-        Names of the position, its velocity and the latent state.
+        Names of the host's position, its velocity and the latent state.
+    drive : Drive, optional
+        On several degrees of freedom, the host's drive and the other velocity equations (see
+        :func:`.hosts.drives`); by default the input alone drives the one degree of freedom.
     """
 
-    def __init__(self, states, u, y: str, v: str, z: str):
+    def __init__(self, states, u, y: str, v: str, z: str, drive: Drive | None = None):
         self.states, self.u, self.y, self.v, self.z = states, u, y, v, z
         self.sym = {s.name(): s for s in states}
+        self.variables = {**self.sym, u.name(): u}
+        self.drive = drive.terms if drive is not None else ((u.name(), 1.0),)
+        self.others = drive.others if drive is not None else {}
+        self.pairs = drive.pairs if drive is not None else ((y, v),)
 
     def starts(self, s: Screened) -> dict:
         """The starting model of each branch."""
@@ -101,25 +112,25 @@ class Branches:
     def model(self, skeleton: Skeleton, forces, laws) -> IdentifiedModel:
         """``v' = (u - c v - k y - sum eta phi - z) / m`` and ``z' = sum xi theta`` from screened columns."""
         m, sv = skeleton.m, self.sym
-        terms = [
-            _estimate(self.u, 1 / m),
-            _estimate(sv[self.y], -skeleton.k / m),
-            _estimate(sv[self.v], -skeleton.c / m),
-        ]
+        terms = [_estimate(self.variables[n], kappa / m) for n, kappa in self.drive]
+        terms += [_estimate(sv[self.y], -skeleton.k / m), _estimate(sv[self.v], -skeleton.c / m)]
         terms += [_estimate(t.expr, -fit.coef_[i] / m, fit, i) for t, fit, i in forces]
         hidden = bool(laws)
         if hidden:
             terms.append(TermEstimate(expr=sv[self.z], coef=-1 / m, std=0.0, fixed=True))
-        equations = [Equation.kinematic(self.y, sv[self.v]), _equation(self.v, terms)]
+        by_state = {x: Equation.kinematic(x, sv[w]) for x, w in self.pairs}
+        by_state[self.v] = _equation(self.v, terms)
+        for w, fitted in self.others.items():
+            by_state[w] = _equation(w, [_estimate(self.variables[n], c) for n, c in fitted])
         if hidden:
-            equations.append(_equation(self.z, [_estimate(t.expr, fit.coef_[i], fit, i) for t, fit, i in laws]))
+            by_state[self.z] = _equation(self.z, [_estimate(t.expr, fit.coef_[i], fit, i) for t, fit, i in laws])
         states = self.states if hidden else tuple(s for s in self.states if s.name() != self.z)
         return IdentifiedModel(
             states=states,
             inputs=(self.u,),
-            equations=tuple(equations),
-            kinematics=((self.y, self.v),),
-            measured=(self.y,),
+            equations=tuple(by_state[s.name()] for s in states),
+            kinematics=tuple(self.pairs),
+            measured=tuple(x for x, _ in self.pairs),
         )
 
     def with_latent(self, model: IdentifiedModel, keep: bool) -> IdentifiedModel:
@@ -146,7 +157,8 @@ class Branches:
         scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
         penalty = rule.nats_per_term(n_samples, n_candidates)
         visible = max((k for k in ("linear", "memoryless") if k in fits), key=scores.__getitem__, default=None)
-        if visible == "memoryless" and len(fits["memoryless"].equation(self.v).terms) <= 3 and "linear" in fits:
+        skeleton = len(self.drive) + 2
+        if visible == "memoryless" and len(fits["memoryless"].equation(self.v).terms) <= skeleton and "linear" in fits:
             visible = "linear"  # its selection removed every force term
         law = fits["hidden"].equation(self.z).terms if "hidden" in fits else ()
         if visible is None:  # only the hidden branch could be simulated

@@ -23,6 +23,7 @@ the white floor of the output's spectrum above the band (third differences when 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -245,6 +246,13 @@ class Spectra:
                     )
                 )
             self.valid[:edge] = self.valid[-edge:] = False
+
+    def driven_by(self, u: np.ndarray) -> Spectra:
+        """This record with ``u`` (on the same samples) in place of its input: a host's drive (see
+        :mod:`.hosts`). The excited lines and the band stay those of the record's input."""
+        out = copy.copy(self)
+        out.u, out.Uf = np.asarray(u, dtype=float), np.fft.rfft(u)
+        return out
 
     def filtered(self, spectrum: np.ndarray) -> np.ndarray:
         """The band-limited signal of a spectrum of the average."""

@@ -72,7 +72,10 @@ def gains(S: np.ndarray, g: np.ndarray, base: np.ndarray, alpha_base: np.ndarray
     info = S[others, others] - np.einsum("ja,aj->j", B, solved[:, :-1])
     score = g[others] - B @ solved[:, -1]
     scale = np.maximum(np.abs(S[others, others]), 1e-300)
-    return np.where(info > 1e-10 * scale, 0.5 * score**2 / np.maximum(info, 1e-300), 0.0)
+    ok = info > 1e-10 * scale  # a candidate the base already spans gains nothing (and is not divided by ~0)
+    gain = np.zeros(info.shape)
+    gain[ok] = 0.5 * score[ok] ** 2 / info[ok]
+    return gain
 
 
 def score_gains(blocks, npar: int, base: np.ndarray, alpha_base: np.ndarray, others: np.ndarray) -> np.ndarray | None:
