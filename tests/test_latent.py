@@ -243,6 +243,36 @@ def chain_errors(system, model, rms, seed) -> dict:
     }
 
 
+def test_host_and_drives_of_a_chain_whatever_the_order_of_its_pairs():
+    """The host is the mass whose linear fit leaves most beyond its noise, listed first or not; on a linear chain
+    both drives are the true coupling: of the driven mass, in the input's units (k2, c2, 1), of the other, per
+    unit mass (k2/m1, c2/m1)."""
+    from symsbl._latent.hosts import drives, host_of, same_cut
+
+    def spectra_of(system, noise):
+        clean = chain_response(system, rms=25.0, seed=1, periods=7).slice(int(4 * 2.0 * FS))  # the transient gone
+        rng = np.random.default_rng(4)
+        y = {
+            n: clean.column(n) + noise * clean.column(n).std() * rng.standard_normal(clean.t.size) for n in ("y1", "y2")
+        }
+        cut = split_periods(clean.t, clean.column("F"), y["y2"])
+        out = {n: Spectra(same_cut(cut, y[n])) for n in y}
+        return out, {"F": out["y2"].u}
+
+    pairs = (("y2", "v2"), ("y1", "v1"))  # the host second
+    spectra, inputs = spectra_of(chain_with_dahl_friction(), 0.005)
+    host, misfit = host_of(spectra, pairs, inputs)
+    assert host == ("y1", "v1") and misfit["y1"] > 2 and 0.7 < misfit["y2"] < 1.4
+    spectra, inputs = spectra_of(chain_with_dahl_friction(s=0.0), 1e-6)  # nothing hidden: a linear chain
+    truth = {("y2", "v2"): {"y1": 1.2e4, "v1": 2.0, "F": 1.0}, ("y1", "v1"): {"y2": 1.2e4 / 1.6, "v2": 2.0 / 1.6}}
+    for host, expected in truth.items():
+        for drive in drives(spectra, pairs, inputs, host):
+            assert drive.driven == ("F" in expected)
+            terms = dict(drive.terms)
+            for name, value in expected.items():
+                assert terms[name] == pytest.approx(value, rel=1e-3), (host, drive.kind, name)
+
+
 @pytest.mark.slow
 def test_hidden_friction_on_one_mass_of_a_chain():
     """Both positions measured, the friction's state hidden, the force on the other mass: the host is found (its
@@ -253,6 +283,7 @@ def test_hidden_friction_on_one_mass_of_a_chain():
     info = model.metadata["latent"]
     assert info["verdict"] == "hidden" and info["host"] == "y1"
     assert info["misfit"]["y1"] > 2 and 0.7 < info["misfit"]["y2"] < 1.4  # the second mass: linear, to its noise
+    assert info["drive"] == "free" and not info["driven"]
     from symsbl._cli import _latent_summary
 
     assert _latent_summary(info).startswith("latent state z on y1 (each position's linear misfit over its noise")
@@ -287,7 +318,7 @@ def test_hysteresis_on_the_driven_mass_of_a_chain():
     info = model.metadata["latent"]
     assert info["verdict"] == "hidden" and info["host"] == "y1"
     assert info["drive"] == "reciprocal" and info["driven"]
-    assert model.equation("v1").coef("F") == pytest.approx(1.0, rel=0.01)  # z in newtons: the input's units
+    assert model.equation("v1").coef("F") == pytest.approx(1.0, rel=0.01)
     assert max(chain_errors(system, model, rms=30.0, seed=8).values()) < 0.01  # measured: 0.37 %
 
 
@@ -313,8 +344,11 @@ def test_settings_outside_the_one_identified_are_refused():
     refused = r"^states: expected positions, their velocities and one latent state"
     with pytest.raises(symsbl.DataError, match=refused):  # two latent states
         symsbl.identify(record, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
-    with pytest.raises(symsbl.DataError, match=refused):  # a state outside every pair: not a structure of masses
+    with pytest.raises(symsbl.DataError, match=refused):  # no pair at all
         symsbl.identify(record, library, states=("x1", "x3"))
+    level = symsbl.Trajectory(t, np.column_stack([np.sin(t), np.cos(t)]), np.cos(t)[:, None], ("x1", "x3"), ("F",))
+    with pytest.raises(symsbl.DataError, match=refused):  # a measured state outside every pair (a tank's level)
+        symsbl.identify(level, library, states=("x1", "x2", "x3", "x4"), kinematics="x1:x2")
     (x5,) = symsbl.symbols("x5")
     library = symsbl.paper([x1, x2, x3, x4, x5], [F], degree=1)
     velocity = symsbl.Trajectory(t, np.column_stack([np.sin(t), np.cos(t)]), np.cos(t)[:, None], ("x1", "x4"), ("F",))

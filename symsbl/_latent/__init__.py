@@ -343,5 +343,5 @@ class _Clock:
 
     def __call__(self, stage: str):
         now = time.perf_counter()
-        self.times[stage] = round(now - self.start, 2)
+        self.times[stage] = round(self.times.get(stage, 0.0) + now - self.start, 2)  # a stage run again adds up
         self.start = now

@@ -137,8 +137,14 @@ class Branches:
         """The chosen branch in the states asked for: without a hidden law, ``z' = 0`` and ``z`` used nowhere."""
         if keep:
             return model
-        empty = Equation(self.z, (), np.zeros((0, 0)), math.nan, math.nan, 0)
-        return dataclasses.replace(model, states=self.states, equations=(*model.equations, empty))
+        by_state = {eq.lhs: eq for eq in model.equations}
+        by_state[self.z] = Equation(self.z, (), np.zeros((0, 0)), math.nan, math.nan, 0)
+        return dataclasses.replace(model, states=self.states, equations=tuple(by_state[s.name()] for s in self.states))
+
+    def forces(self, model: IdentifiedModel) -> list:
+        """The terms of the host's equation beyond its drive and skeleton (a memoryless force, a latent state)."""
+        skeleton = {*dict(self.drive), self.y, self.v}
+        return [t for t in model.equation(self.v).terms if t.name not in skeleton]
 
     def integrable(self, terms) -> bool:
         """Every term is ``v g(z)``: the law integrates to ``z = G(y)``, an elastic force."""
@@ -157,8 +163,7 @@ class Branches:
         scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
         penalty = rule.nats_per_term(n_samples, n_candidates)
         visible = max((k for k in ("linear", "memoryless") if k in fits), key=scores.__getitem__, default=None)
-        skeleton = len(self.drive) + 2
-        if visible == "memoryless" and len(fits["memoryless"].equation(self.v).terms) <= skeleton and "linear" in fits:
+        if visible == "memoryless" and "linear" in fits and not self.forces(fits["memoryless"]):
             visible = "linear"  # its selection removed every force term
         law = fits["hidden"].equation(self.z).terms if "hidden" in fits else ()
         if visible is None:  # only the hidden branch could be simulated

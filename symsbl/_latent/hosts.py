@@ -1,9 +1,11 @@
 """The host of a latent state on a structure of several degrees of freedom, and what drives it.
 
-On a chain of masses the hidden force of one joint (hysteresis, friction with pre-sliding) enters the
-velocity equation of the mass it acts on: the *host*. Every measured position is averaged over the same
-periods of the record (one cut for all) with its band-limited derivatives, and each velocity equation is
-fitted by least squares on every position, velocity and input:
+On a chain of masses the hidden force between one mass and the ground (hysteresis, friction with
+pre-sliding, in its support) enters the velocity equation of that mass, the *host*, with a law in the
+host's velocity (a force between two masses, a law in their relative velocity, is not identified yet).
+Every measured position is averaged over the same periods of the record (one cut for all) with its
+band-limited derivatives, and each velocity equation is fitted by least squares on every position,
+velocity and input:
 
     y_j'' = sum_i (k_ji y_i + c_ji y_i') + sum_l b_jl u_l + residual_j.
 
