@@ -209,20 +209,26 @@ def _read(args, path, states, inputs, *, optional=()):
                 f"--states {','.join(absent)}",
                 "a column of DATA",
                 "no such column",
-                f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics <position>:{absent[0]}",
+                f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics <position>:{absent[0]}; "
+                f"if it is a hidden state with a law of its own, --latent {absent[0]}",
                 raw=True,
             )
         ) from None
 
 
-def _unmeasured_allowed(states, kinematics) -> tuple:
-    """Columns a record may lack once kinematic pairs are declared: the velocities, the positions of pairs that
-    have an acceleration column, the acceleration columns, and any other state (latent: its law is identified
-    from the measured ones, see :mod:`symsbl._latent`)."""
+def _unmeasured_allowed(states, kinematics, latent=()) -> tuple:
+    """Columns a record may lack: the states declared ``latent``, and once kinematic pairs are declared the
+    velocities, the positions of pairs that have an acceleration column, the acceleration columns, and any other
+    state (latent: its law is identified from the measured ones, see :mod:`symsbl._latent`)."""
     from ._derivatives.kinematics import kinematic_triples
 
+    strangers = [n for n in latent if n not in states]
+    if strangers:
+        raise ParameterError(
+            expected("--latent", "names among --states", strangers, f"add {','.join(strangers)} to --states", raw=True)
+        )
     if not kinematics:
-        return ()
+        return tuple(latent)
     triples = kinematic_triples(kinematics, states)
     positions = {x for x, _, a in triples if a is None}
     return tuple(s for s in states if s not in positions) + tuple(a for _, _, a in triples if a is not None)
@@ -259,9 +265,8 @@ def _cmd_identify(args) -> int:
     states, inputs, outputs = _names(args.states), _names(args.inputs), _names(args.outputs)
     _outputs(args, [*args.data, args.library if str(args.library).endswith(".py") else None])
     accelerations = _accelerations(states, args.kinematics)
-    records = _read_all(
-        args, args.data, states + accelerations + outputs, inputs, optional=_unmeasured_allowed(states, args.kinematics)
-    )
+    optional = _unmeasured_allowed(states, args.kinematics, _names(args.latent))
+    records = _read_all(args, args.data, states + accelerations + outputs, inputs, optional=optional)
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     derivative = _identify_derivative(args)
     model = _identify_model(args, records, library, derivative, states, outputs)
@@ -399,6 +404,13 @@ def _diagnosis(model) -> list[str]:
 def _latent_summary(info: dict) -> str:
     """What the latent-state pipeline found, in two lines."""
     branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
+    if info.get("start") == "driven":
+        law = info["screened_law"]
+        return (
+            f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} (started from "
+            f"{info['latent']}' = {law['drive']} - {law['rate']:.3g} {law['law']}, time constant {law['tau']:.3g} s, "
+            f"of {info['n_candidates']} laws screened)"
+        )
     record = (
         f"{info['periods']} periods of {info['period_samples']} samples; noise of their average"
         if info["periodic"]
@@ -605,6 +617,14 @@ def _add_identify_model(p) -> None:
         metavar="NAME[,...]",
         help="columns with an equation of their own over the library (a force cell), identified with the "
         "states, e.g. --outputs Fc",
+    )
+    p.add_argument(
+        "--latent",
+        default="",
+        metavar="NAME[,...]",
+        help="states of --states that no record measures, with a law of their own identified from the measured "
+        "ones (a hidden level, a hysteretic force), e.g. --states x1,x2 --latent x1; with --kinematics, any state "
+        "outside its pairs is latent already",
     )
 
 

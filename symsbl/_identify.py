@@ -93,7 +93,9 @@ def identify(
         law that no record holds (the hysteretic force of a Bouc-Wen oscillator). One latent state is
         identified on a structure of position-velocity pairs (every position measured; on several, the
         hidden force's host is found) and one input, from one record or several jointly, best of
-        whole periods of a periodic input (see *Latent states* in the documentation): ``metadata["latent"]`` then
+        whole periods of a periodic input; or beside states that are all measured, with a law
+        ``z' = d - a phi(z) + ...`` driven by one measured signal (the upper level of two tanks in cascade)
+        (see *Latent states* in the documentation): ``metadata["latent"]`` then
         gives the verdict
         ("hidden" or "nothing hidden"), and the model is always refined by output error: ``refine=False`` and a
         ``derivative`` other than ``"weak"`` are refused there, and every other option acts (the refinement's

@@ -529,7 +529,8 @@ CLI_CASES = [
         ["identify", "{d}/train.csv", "--states", "x1,v1", "--inputs", "F"],
         2,
         "symsbl identify: error: --states v1: expected a column of DATA, received no such column; if v1 is an "
-        "unmeasured velocity, declare its pair: --kinematics <position>:v1",
+        "unmeasured velocity, declare its pair: --kinematics <position>:v1; if it is a hidden state with a law of its "
+        "own, --latent v1",
     ),
     (
         "discrepancy: a velocity left out without its pair",
@@ -537,7 +538,8 @@ CLI_CASES = [
         ["discrepancy", "{d}/train.csv", "--states", "x1,v1", "--inputs", "F", "--base", "x1: v1; v1: F, x1, v1"],
         2,
         "symsbl discrepancy: error: --states v1: expected a column of DATA, received no such column; if v1 is an "
-        "unmeasured velocity, declare its pair: --kinematics <position>:v1",
+        "unmeasured velocity, declare its pair: --kinematics <position>:v1; if it is a hidden state with a law of its "
+        "own, --latent v1",
     ),
     (
         "missing required option",

@@ -20,6 +20,10 @@ reconstructs it, screens its law and settles the structure by output error on wh
    integrates to a memoryless spring ``z = G(y)``);
 5. as asked: the winner refined once more with the caller's doubts and model choice (:class:`Fitting`).
 
+Beside states that are all measured (no structure hosts it: a level, a pressure), :mod:`.driven` screens
+laws ``z' = d - a phi(z)`` simulated from a measured signal ``d`` and refines the leaders by output error
+beside "nothing hidden" (``z' = 0``).
+
 Several records are screened on the one whose position varies most and refined jointly. On a
 structure of several masses (every position measured), :mod:`.hosts` finds the pair whose velocity
 equation the hidden force enters and the drive of that mass by the rest of the structure; stages 1-3
@@ -43,9 +47,12 @@ from .._base.errors import DataError, SimulationError, expected
 from .._base.rule import SelectionRule
 from .._model import IdentifiedModel
 from .._refine import RefineOptions, refine
+from .._regression.fit import fit_stats
+from .._regression.rows import regression_stats
 from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
-from .branches import Branches, Screened
+from . import driven
+from .branches import Branches, Screened, unused
 from .hosts import drives, host_of, same_cut
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
@@ -59,25 +66,48 @@ __all__ = ["identify_latent", "Fitting", "Periods", "Spectra", "split_periods", 
 #: model's own rule) left k off by 0.14 % and the test multisine at 2.45e-7 m; 4 (this rule), 0.003 % and
 #: 1.70e-7 m.
 INPUT_RESOLUTION = 0.35
+#: Log evidences this close are one model reached from two starts.
+TIE_NATS = 1e-3
 
 
-def _check_setting(trajectories, names, pairs, latent, library: Library):
-    """The setting identified: one latent state on a structure of position-velocity pairs, every position
-    measured, one input."""
+def _setting(trajectories, names, pairs, latent, library: Library) -> str:
+    """The setting identified: ``"structure"``, one latent state on a structure of position-velocity pairs, every
+    position measured, one input; or ``"driven"``, one latent state beside states that are all measured (a
+    level of a cascade, see :mod:`.driven`)."""
+    record = trajectories[0]
     members = {n for pair in pairs for n in pair}
     others = [n for n in names if n not in members and n not in latent]
-    if len(latent) != 1 or not pairs or others:
+    measured = all(n in record.state_names for n in names if n not in latent)
+    if len(latent) != 1 or not (pairs and not others or measured):
         raise DataError(
             expected(
                 "states",
-                "positions, their velocities and one latent state (e.g. --states y,v,z --kinematics y:v, or "
-                "y1,v1,y2,v2,z --kinematics y1:v1,y2:v2)",
+                "one latent state beside measured states (e.g. --states x1,x2 with x2 a column), or on a structure "
+                "of masses (--states y,v,z --kinematics y:v, or y1,v1,y2,v2,z --kinematics y1:v1,y2:v2)",
                 f"states {list(names)} with kinematics {[f'{x}:{v}' for x, v in pairs]} and latent {list(latent)}",
-                "a latent state is identified on a structure of masses, each position measured",
+                "a latent state is identified beside measured states, or on a structure of masses whose positions "
+                "are measured",
                 raw=True,
             )
         )
-    record = trajectories[0]
+    missing = [n for n in (*names, *record.input_names) if n not in library.variable_names]
+    if missing:
+        raise DataError(
+            expected(
+                "library",
+                f"terms of the states and inputs {[*names, *record.input_names]}",
+                f"no variable {missing}",
+                raw=True,
+            )
+        )
+    if pairs and not others:
+        _check_structure(record, pairs)
+        return "structure"
+    return "driven"
+
+
+def _check_structure(record, pairs) -> None:
+    """Every position of the structure measured, one input."""
     for position, _ in pairs:
         if position not in record.state_names:
             raise DataError(
@@ -88,16 +118,6 @@ def _check_setting(trajectories, names, pairs, latent, library: Library):
     if len(record.input_names) != 1:
         raise DataError(
             expected("inputs", "one input (the force) when a state is latent", list(record.input_names), raw=True)
-        )
-    missing = [n for n in (*names, *record.input_names) if n not in library.variable_names]
-    if missing:
-        raise DataError(
-            expected(
-                "library",
-                f"terms of the states and input {[*names, *record.input_names]}",
-                f"no variable {missing}",
-                raw=True,
-            )
         )
 
 
@@ -173,7 +193,8 @@ def identify_latent(
         ``metadata["latent"]`` holds the verdict, each branch's log evidence and terms, the stages'
         results and times.
     """
-    _check_setting(trajectories, names, pairs, latent, library)
+    if _setting(trajectories, names, pairs, latent, library) == "driven":
+        return _identify_driven(trajectories, library, names, pairs, latent[0], fitting)
     clock = _Clock()
     z, u = latent[0], trajectories[0].input_names[0]
     cuts, periodic, lead = _periods_of(trajectories, pairs[0][0], u)
@@ -198,6 +219,94 @@ def identify_latent(
     if drive is not None:
         summary.update(drive=drive.kind, driven=drive.driven)
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitting: Fitting) -> IdentifiedModel:
+    """One latent state beside measured states (see :mod:`.driven`): the laws screened on the longest record, the
+    best one and the "nothing hidden" model of the measured states refined on every record, the verdict by
+    evidence as on a structure."""
+    clock = _Clock()
+    lead = int(np.argmax([r.n_samples for r in trajectories]))
+    found = driven.screen(trajectories[lead], library, names, z, pairs, fitting)
+    clock("law screen")
+    if not found:
+        raise SimulationError(
+            expected(
+                "data",
+                f"a record on which some law {z}' = d - a phi({z}) of the library can be simulated from a measured d",
+                "every candidate left its law's domain or could not be regressed on",
+                f"add terms of {z} alone to the library (e.g. {z}, sqrt({z}))",
+                raw=True,
+            )
+        )
+    starts, data, libraries, leaders = _driven_starts(trajectories, library, names, pairs, z, found, lead, fitting)
+    options = dataclasses.replace(fitting.options, doubts="report")
+    rule = dataclasses.replace(fitting.rule, model_choice="evidence")
+    fits, caught, failed = _refine_branches(starts, data, libraries, options, rule, clock)
+    scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
+    penalty = fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), len(found))
+    best = _driven_verdict(scores, leaders, penalty)
+    hidden = best is not None
+    winner = best or "nothing hidden"
+    for w in caught[winner]:
+        warnings.warn(w.message, w.category, stacklevel=3)
+    chosen = _as_asked(fits[winner], data[winner], libraries[winner], options, fitting, clock)
+    symbols = {s.name(): s for s in library.variables}
+    final = chosen if hidden else unused(chosen, tuple(symbols[n] for n in names), z)
+    summary = {
+        "verdict": "hidden" if hidden else "nothing hidden",
+        "latent": z,
+        "start": "driven",
+        "screened_law": (leaders[winner] if hidden else found[0]).to_json(),
+        "candidates": [c.to_json() for c in leaders.values()],
+        "n_candidates": len(found),
+        "branches": {
+            k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
+            for k, f in fits.items()
+        },
+        "failed": failed,
+        "records": len(trajectories),
+        "screened_on": lead,
+        "seconds": clock.times,
+    }
+    return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+def _driven_starts(trajectories, library: Library, names, pairs, z: str, found, lead: int, fitting: Fitting):
+    """The branches' starts, records (with each law's latent guess), libraries, and the screened candidate of each
+    hidden branch: "nothing hidden" (the measured states alone) and each of :func:`.driven.leaders`."""
+    visible = [n for n in names if n != z]
+    plain = Library(
+        [t for t in library.terms if z not in {s.name for s in t.sympy.free_symbols}],
+        [s for s in library.variables if s.name() != z],
+    )
+    starts = {"nothing hidden": _visible_start(trajectories, plain, visible, pairs, fitting)}
+    data, libraries, leaders = {"nothing hidden": trajectories}, {"nothing hidden": plain}, {}
+    for c in driven.leaders(found):
+        key = f"{z}' = {c.drive} - a {c.law.name}"
+        try:
+            data[key] = driven.guesses(c, trajectories, z, names)
+            starts[key] = driven.start_model(c, data[key][lead], library, names, z, pairs, fitting)
+        except SimulationError:  # its law leaves its domain on another record
+            continue
+        libraries[key], leaders[key] = library, c
+    return starts, data, libraries, leaders
+
+
+def _driven_verdict(scores: dict, leaders: dict, penalty: float) -> str | None:
+    """The hidden branch of highest log evidence when it beats "nothing hidden" by ``penalty``, else None; branches
+    that converged to one model tie, and the one screened best names it."""
+    top = max((scores[k] for k in leaders if k in scores), default=-math.inf)
+    best = next((k for k in leaders if k in scores and scores[k] >= top - TIE_NATS), None)
+    return best if best is not None and scores[best] > scores.get("nothing hidden", -math.inf) + penalty else None
+
+
+def _visible_start(trajectories, library: Library, states, pairs, fitting: Fitting) -> IdentifiedModel:
+    """The "nothing hidden" start: the measured states' equation-error model on a library without the latent
+    state."""
+    records = [r.with_states(states) for r in trajectories]
+    problem = regression_stats(records, library, chunk_size=fitting.chunk_size, jit=fitting.jit, states=states)
+    return fit_stats(problem, rvm=fitting.rvm, kinematics=pairs, selection=fitting.rule)
 
 
 def _host(record, cut, periodic: bool, library: Library, pairs, channels, fitting: Fitting, clock):
@@ -252,14 +361,16 @@ def _as_asked(fit: IdentifiedModel, data, library, options: RefineOptions, fitti
 
 
 def _refine_branches(starts, data, candidates, options: RefineOptions, rule: SelectionRule, clock):
-    """Each branch refined from its start on ``data``: the fits, the warnings of each, the branches that failed."""
+    """Each branch refined from its start on ``data`` (the records, or a dict of each branch's): the fits, the
+    warnings of each, the branches that failed."""
     fits, caught = {}, {}
     failed = {}
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
             try:
-                fits[name] = refine(start, data, library=candidates.get(name), options=options, selection=rule)
+                records = data[name] if isinstance(data, dict) else data
+                fits[name] = refine(start, records, library=candidates.get(name), options=options, selection=rule)
             except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
                 failed[name] = str(error)
         clock(f"{name} branch")
@@ -268,7 +379,7 @@ def _refine_branches(starts, data, candidates, options: RefineOptions, rule: Sel
             expected(
                 "data",
                 "a record some branch (linear, memoryless, hidden) can simulate",
-                f"every refinement diverged: {failed['linear']}",
+                f"every refinement diverged: {next(iter(failed.values()))}",
                 raw=True,
             )
         )

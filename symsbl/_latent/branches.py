@@ -33,7 +33,7 @@ from .hosts import Drive
 from .periodic import Spectra
 from .skeleton import Skeleton
 
-__all__ = ["Screened", "Branches"]
+__all__ = ["Screened", "Branches", "unused"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,11 +135,7 @@ class Branches:
 
     def with_latent(self, model: IdentifiedModel, keep: bool) -> IdentifiedModel:
         """The chosen branch in the states asked for: without a hidden law, ``z' = 0`` and ``z`` used nowhere."""
-        if keep:
-            return model
-        by_state = {eq.lhs: eq for eq in model.equations}
-        by_state[self.z] = Equation(self.z, (), np.zeros((0, 0)), math.nan, math.nan, 0)
-        return dataclasses.replace(model, states=self.states, equations=tuple(by_state[s.name()] for s in self.states))
+        return model if keep else unused(model, self.states, self.z)
 
     def forces(self, model: IdentifiedModel) -> list:
         """The terms of the host's equation beyond its drive and skeleton (a memoryless force, a latent state)."""
@@ -171,6 +167,13 @@ class Branches:
         if law and not self.integrable(law) and scores["hidden"] > scores[visible] + penalty:
             return "hidden", "hidden", scores
         return f"nothing hidden ({'memoryless force' if visible == 'memoryless' else 'linear'})", visible, scores
+
+
+def unused(model: IdentifiedModel, states, z: str) -> IdentifiedModel:
+    """``model`` in the ``states`` asked for (casadi symbols), with ``z' = 0`` and ``z`` used nowhere."""
+    by_state = {eq.lhs: eq for eq in model.equations}
+    by_state[z] = Equation(z, (), np.zeros((0, 0)), math.nan, math.nan, 0)
+    return dataclasses.replace(model, states=tuple(states), equations=tuple(by_state[s.name()] for s in states))
 
 
 def _memoryless_skeleton(fit, linear: Skeleton) -> Skeleton:

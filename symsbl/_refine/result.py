@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from .._model import Equation, FitMethod, IdentifiedModel, TermEstimate
+from .._model.outputs import latent_of
 from .engine import Engine
 from .laplace import reduce_model
 from .solver import Solution
@@ -25,6 +26,7 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
         "interpolation": engine.settings.interpolation,
         "noise": noise_record(engine.measured, sol),
     }
+    fitted.update(_latent_start(engine, sol))
     info = dict(info, refine={**fitted, **info.get("refine", {})})
     post, active = sol.posterior, list(sol.active)
     where = {engine.positions[k]: n for n, k in enumerate(active)}
@@ -79,6 +81,14 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
         **observed,
     )
     return dataclasses.replace(model, joint_covariance=_joint(model, free_order, post.covariance))
+
+
+def _latent_start(engine: Engine, sol: Solution) -> dict:
+    """``{"latent_start": {state: median fitted initial value}}`` for the latent states: where a record's latent
+    state starts when nothing else says (a level under a square root cannot start at zero)."""
+    names = engine.model.state_names
+    latent = latent_of(names, engine.outputs, engine.model.kinematics)
+    return {"latent_start": {n: float(np.median(sol.X0[:, names.index(n)])) for n in latent}} if latent else {}
 
 
 def noise_record(measured, sol: Solution) -> dict:

@@ -32,6 +32,7 @@ ELEMENTWISE = {
     "exp": ca.exp,
     "tanh": ca.tanh,
     "atan": ca.atan,
+    "sqrt": ca.sqrt,  # NaN below zero: a level, a flow through an orifice
 }
 
 #: Largest number of candidate terms a builder makes before de-duplication. Building and

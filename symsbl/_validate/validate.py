@@ -39,6 +39,7 @@ from .._model import IdentifiedModel
 from .._model.outputs import latent_of, state_outputs
 from .._refine.initial import fitted_start, short_horizons
 from .._refine.problem import INTERPOLATIONS
+from .._refine.rows import latent_start
 from .._simulation.rk4 import run_rk4_batch
 from .._simulation.signals import Sampled
 from .._simulation.simulate import resolve_inputs, simulate
@@ -227,12 +228,14 @@ def _initial_state(
     model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str, substeps: int
 ) -> tuple[np.ndarray, int | None]:
     """The start of the re-simulation: the first sample (a member of a kinematic pair the record lacks
-    reconstructed from the others, a latent state zero) or, ``how="fit"``, the state that best explains the
-    first stretch of the ``observed`` channels; and the samples in which a state error grows 10^4-fold."""
+    reconstructed from the others, a latent state where its fit started it, else zero) or, ``how="fit"``, the
+    state that best explains the first stretch of the ``observed`` channels; and the samples in which a state
+    error grows 10^4-fold."""
     acceleration = {o.equation: o.name for o in model.observation if o.kind == "acceleration"}
     triples = [(x, v, acceleration.get(v)) for x, v in model.kinematics]
     columns = completed_columns(data, model.state_names, triples)
-    x0 = np.array([columns[n][0] if n in columns else 0.0 for n in model.state_names])
+    rest = latent_start(model)
+    x0 = np.array([columns[n][0] if n in columns else rest.get(n, 0.0) for n in model.state_names])
     if how == "first":
         return x0, None
 

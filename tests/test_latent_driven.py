@@ -1,0 +1,225 @@
+"""A latent state beside measured states (symsbl._latent.driven): the upper of two tanks in cascade.
+
+References: the closed-form equilibria and responses of the candidate laws, and the systems that generated the
+records (their parameters are known, the latent level's scale follows from the convention the model prints).
+"""
+
+import json
+import math
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import symsbl
+from symsbl._latent import driven
+
+FS, SPAN = 5.0, 600.0  # Hz, s
+
+
+def excitation(seed: int) -> np.ndarray:
+    """A flow around 1 with 59 random-phase tones up to 0.1 Hz (positive: the tanks never run dry)."""
+    t = np.arange(int(SPAN * FS)) / FS
+    rng = np.random.default_rng(seed)
+    tones = sum(np.cos(2 * np.pi * k / SPAN * t + rng.uniform(0, 2 * np.pi)) for k in range(1, 60))
+    return 1.0 + 0.25 * tones / math.sqrt(59 / 2)
+
+
+class Tanks:
+    """``x1' = -k1 sqrt(x1) + k4 u``, ``x2' = k2 sqrt(x1) - k3 sqrt(x2)``, with its parameters at hand."""
+
+    def __init__(self, k1, k2, k3, k4):
+        self.k = (k1, k2, k3, k4)
+        x1, x2, u = symsbl.symbols("x1 x2 u")
+        rhs = (-k1 * ca.sqrt(x1) + k4 * u, k2 * ca.sqrt(x1) - k3 * ca.sqrt(x2))
+        self.system = symsbl.OdeSystem(states=(x1, x2), inputs=(u,), rhs=rhs, name="two tanks")
+
+    def scaled(self) -> dict:
+        """The truth in the model's convention (the flow's coefficient in x1' is 1: x1 / k4 is the latent level)."""
+        k1, k2, k3, k4 = self.k
+        return {
+            ("x1", "sqrt(x1)"): -k1 / math.sqrt(k4),
+            ("x2", "sqrt(x1)"): k2 * math.sqrt(k4),
+            ("x2", "sqrt(x2)"): -k3,
+        }
+
+    def record(self, seed: int, noise: float, noise_seed: int):
+        """The lower level (with noise of ``noise`` times its spread) and the flow, from the equilibrium at the mean
+        flow; and the noise-free levels."""
+        u = excitation(seed)
+        t = np.arange(u.size) / FS
+        k1, k2, k3, k4 = self.k
+        x1 = (k4 / k1) ** 2
+        clean = symsbl.simulate(self.system, t, inputs=u, x0=[x1, (k2 * math.sqrt(x1) / k3) ** 2])
+        x2 = clean.column("x2")
+        measured = x2 + noise * x2.std() * np.random.default_rng(noise_seed).standard_normal(x2.size)
+        return symsbl.Trajectory(t, measured[:, None], u[:, None], ("x2",), ("u",)), clean
+
+
+def library():
+    x1, x2, u = symsbl.symbols("x1 x2 u")
+    return symsbl.polynomial([x1, x2], degree=2) + symsbl.elementwise([x1, x2], ["sqrt"]) + symsbl.inputs([u])
+
+
+def coefficients(model) -> dict:
+    return {(eq.lhs, t.name): t.coef for eq in model.equations for t in eq.terms if not t.fixed}
+
+
+# -- the candidates' closed forms ---------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "law, level, equilibrium, slope",
+    [
+        (lambda z: z, 2.0, lambda a, d: d / a, lambda a, d: a),
+        (ca.sqrt, 2.0, lambda a, d: (d / a) ** 2, lambda a, d: a**2 / (2 * d)),
+        (
+            lambda z: z**2,
+            2.0,
+            lambda a, d: math.sqrt(d / a),
+            lambda a, d: 2 * math.sqrt(a * d),
+        ),  # the stable, positive root
+        (lambda z: z**3, -3.0, lambda a, d: -((-d / a) ** (1 / 3)), lambda a, d: 3 * a * (-d / a) ** (2 / 3)),
+    ],
+)
+def test_equilibria_of_each_law_in_closed_form(law, level, equilibrium, slope):
+    (z,) = symsbl.symbols("z")
+    term = symsbl.Library([law(z)], [z]).terms[0]
+    rates = np.array([0.01, 0.3, 7.0])
+    values, slopes = driven.equilibria(term, rates, level)
+    np.testing.assert_allclose(values, [equilibrium(a, level) for a in rates], rtol=1e-9)
+    np.testing.assert_allclose(slopes, [slope(a, level) for a in rates], rtol=1e-8)
+
+
+def test_no_stable_equilibrium_is_nan():
+    """``z' = -1 - a sqrt(z)`` has none (a tank drained below empty)."""
+    (z,) = symsbl.symbols("z")
+    term = symsbl.elementwise([z], ["sqrt"]).terms[0]
+    values, slopes = driven.equilibria(term, np.array([0.5]), -1.0)
+    assert np.isnan(values).all() and np.isnan(slopes).all()
+
+
+def test_trajectories_against_the_linear_response_in_closed_form():
+    """``z' = d - a z`` under a step drive from rest: ``z = d/a (1 - exp(-a t))``, every rate at once."""
+    (z,) = symsbl.symbols("z")
+    term = symsbl.Library([z], [z]).terms[0]
+    dt, rates = 0.05, np.array([0.1, 1.0, 5.0])
+    t = np.arange(400) * dt
+    Z = driven.trajectories(term, np.full(t.size, 2.0), rates, np.zeros(3), dt)
+    exact = 2.0 / rates * (1 - np.exp(-np.outer(t, rates)))
+    assert np.max(np.abs(Z - exact)) < 1e-6 * 2.0 / rates.min()
+
+
+def test_leaders_are_the_best_of_each_drive_and_law_near_the_best():
+    (z,) = symsbl.symbols("z")
+    lin, root = symsbl.Library([z], [z]).terms[0], symsbl.elementwise([z], ["sqrt"]).terms[0]
+    found = [
+        driven.Candidate("u", root, 0.8, 3.0, 1000.0),
+        driven.Candidate("u", root, 0.6, 5.0, 990.0),
+        driven.Candidate("x2", lin, 0.5, 2.0, 980.0),
+        driven.Candidate("u", lin, 0.3, 3.0, 1000.0 - driven.SCREEN_NATS - 1),
+    ]
+    assert driven.leaders(found) == [found[0], found[2]]
+    assert driven.leaders(found, most=1) == [found[0]]
+
+
+def test_a_latent_state_starts_where_its_fit_started_it():
+    """The exact model of two tanks, re-simulated on a held-out record: from its fitted latent level it is at
+    the noise floor; from zero (a level under a square root has no derivative there) the initial-state fit
+    cannot start; a model file's latent start that is not a number is ignored."""
+    truth = Tanks(0.5, 0.5, 0.4, 0.4)
+    held, clean = truth.record(seed=1, noise=0.005, noise_seed=11)
+    x1, x2, u = symsbl.symbols("x1 x2 u")
+    exact = truth.scaled()
+
+    def equation(lhs, terms):
+        terms = tuple(symsbl.TermEstimate(expr=e, coef=c, std=0.0, fixed=e is u) for e, c in terms)
+        return symsbl.Equation(lhs, terms, np.zeros((len(terms), len(terms))), math.nan, math.nan, 0)
+
+    model = symsbl.IdentifiedModel(
+        states=(x1, x2),
+        inputs=(u,),
+        equations=(
+            equation("x1", [(u, 1.0), (ca.sqrt(x1), exact["x1", "sqrt(x1)"])]),
+            equation("x2", [(ca.sqrt(x1), exact["x2", "sqrt(x1)"]), (ca.sqrt(x2), exact["x2", "sqrt(x2)"])]),
+        ),
+        measured=("x2",),
+        metadata={"refine": {"latent_start": {"x1": float(np.median(clean.column("x1"))) / 0.4}}},
+    )
+    started = symsbl.validate_model(model, held)
+    assert started.nrmse["x2"] < 0.0055  # the noise: 0.5 % of the level's spread
+    doc = model.to_json()
+    doc["metadata"]["refine"]["latent_start"] = {"x1": "1.3"}
+    unstarted = symsbl.validate_model(symsbl.IdentifiedModel.from_json(doc), held)
+    assert not unstarted.nrmse["x2"] < 0.0055
+
+
+# -- identified ---------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_the_upper_tank_identified_from_the_lower_level_alone():
+    truth = Tanks(0.5, 0.5, 0.4, 0.4)
+    train, _ = truth.record(seed=0, noise=0.005, noise_seed=10)
+    model = symsbl.identify(train, library(), states=("x1", "x2"))
+    found, exact = coefficients(model), truth.scaled()
+    assert set(found) == set(exact)
+    for key, value in exact.items():
+        assert found[key] == pytest.approx(value, rel=0.01), key
+    info = model.metadata["latent"]
+    assert info["verdict"] == "hidden" and info["start"] == "driven"
+    assert info["screened_law"]["law"] == "sqrt(x1)" and info["screened_law"]["drive"] == "u"
+    held, clean = truth.record(seed=1, noise=0.0, noise_seed=0)
+    assert symsbl.validate_model(model, held).nrmse["x2"] < 0.002
+
+
+@pytest.mark.slow
+def test_one_tank_has_nothing_hidden():
+    """A single tank (``x2' = 0.6 u - 0.4 sqrt(x2)``) asked for a latent upper level: the measured level alone
+    explains the record, and the latent state is left unused."""
+    x2, u = symsbl.symbols("x2 u")
+    one = symsbl.OdeSystem(states=(x2,), inputs=(u,), rhs=(0.6 * u - 0.4 * ca.sqrt(x2),))
+    flow = excitation(2)
+    t = np.arange(flow.size) / FS
+    clean = symsbl.simulate(one, t, inputs=flow, x0=[(0.6 / 0.4) ** 2])
+    level = clean.column("x2") + 0.005 * clean.column("x2").std() * np.random.default_rng(3).standard_normal(t.size)
+    train = symsbl.Trajectory(t, level[:, None], flow[:, None], ("x2",), ("u",))
+    model = symsbl.identify(train, library(), states=("x1", "x2"))
+    assert model.metadata["latent"]["verdict"] == "nothing hidden"
+    assert model.equation("x1").terms == ()
+    found = coefficients(model)
+    assert set(found) == {("x2", "u"), ("x2", "sqrt(x2)")}
+    assert found["x2", "u"] == pytest.approx(0.6, rel=0.01)
+    assert found["x2", "sqrt(x2)"] == pytest.approx(-0.4, rel=0.01)
+
+
+@pytest.mark.slow
+def test_command_line_with_a_declared_latent_level(tmp_path, capsys):
+    """Other tanks, 1 % noise: ``--latent x1``, the model file, and ``validate`` on a held-out flow."""
+    from symsbl._cli import main
+
+    truth = Tanks(0.3, 0.6, 0.5, 0.8)
+    train, _ = truth.record(seed=4, noise=0.01, noise_seed=12)
+    held, _ = truth.record(seed=5, noise=0.0, noise_seed=0)
+    symsbl.write_trajectory(train, tmp_path / "train.csv")
+    symsbl.write_trajectory(held, tmp_path / "held.csv")
+    (tmp_path / "lib.py").write_text(
+        "import symsbl\nx1, x2, u = symsbl.symbols('x1 x2 u')\n"
+        "library = symsbl.polynomial([x1, x2], 2) + symsbl.elementwise([x1, x2], ['sqrt']) + symsbl.inputs([u])\n"
+    )
+    args = ["--states", "x1,x2", "--inputs", "u", "--library", str(tmp_path / "lib.py"), "--quiet"]
+    assert (
+        main(["identify", str(tmp_path / "train.csv"), *args, "--latent", "x1", "--json", str(tmp_path / "m.json")])
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "x1: latent (not measured); scaled so that the term u of x1' has the coefficient 1" in out
+    assert "latent state x1: hidden; log evidence by branch: nothing hidden" in out
+    model = symsbl.IdentifiedModel.load(tmp_path / "m.json")
+    found, exact = coefficients(model), truth.scaled()
+    assert set(found) == set(exact)
+    for key, value in exact.items():
+        assert found[key] == pytest.approx(value, rel=0.01), key
+    assert (
+        main(["validate", str(tmp_path / "m.json"), str(tmp_path / "held.csv"), "--json", str(tmp_path / "v.json")])
+        == 0
+    )
+    assert json.loads((tmp_path / "v.json").read_text())["nrmse"]["x2"] < 0.003
+    assert main(["identify", str(tmp_path / "train.csv"), *args, "--latent", "x3"]) == 2
+    assert "--latent: expected names among --states, received ['x3']; add x3 to --states" in capsys.readouterr().err
