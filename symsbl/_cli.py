@@ -196,6 +196,10 @@ def _read(args, path, states, inputs, *, optional=()):
                 )
             )
         states = [s for s in states if s in present or s not in optional]
+        if not states:
+            raise DataError(
+                expected("--states", "at least one column of DATA", f"none of {','.join(optional)}", raw=True)
+            )
     try:
         return columns_trajectory(columns, path, states=states, inputs=inputs, time=time, fs=args.fs)
     except DataError:
@@ -209,26 +213,20 @@ def _read(args, path, states, inputs, *, optional=()):
                 f"--states {','.join(absent)}",
                 "a column of DATA",
                 "no such column",
-                f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics <position>:{absent[0]}; "
-                f"if it is a hidden state with a law of its own, --latent {absent[0]}",
+                f"if {absent[0]} is an unmeasured velocity, declare its pair: --kinematics <position>:{absent[0]}",
                 raw=True,
             )
         ) from None
 
 
-def _unmeasured_allowed(states, kinematics, latent=()) -> tuple:
-    """Columns a record may lack: the states declared ``latent``, and once kinematic pairs are declared the
-    velocities, the positions of pairs that have an acceleration column, the acceleration columns, and any other
-    state (latent: its law is identified from the measured ones, see :mod:`symsbl._latent`)."""
+def _unmeasured_allowed(states, kinematics) -> tuple:
+    """Columns a record may lack once kinematic pairs are declared: the velocities, the positions of pairs that
+    have an acceleration column, the acceleration columns, and any other state (latent: its law is identified
+    from the measured ones, see :mod:`symsbl._latent`)."""
     from ._derivatives.kinematics import kinematic_triples
 
-    strangers = [n for n in latent if n not in states]
-    if strangers:
-        raise ParameterError(
-            expected("--latent", "names among --states", strangers, f"add {','.join(strangers)} to --states", raw=True)
-        )
     if not kinematics:
-        return tuple(latent)
+        return ()
     triples = kinematic_triples(kinematics, states)
     positions = {x for x, _, a in triples if a is None}
     return tuple(s for s in states if s not in positions) + tuple(a for _, _, a in triples if a is not None)
@@ -265,7 +263,8 @@ def _cmd_identify(args) -> int:
     states, inputs, outputs = _names(args.states), _names(args.inputs), _names(args.outputs)
     _outputs(args, [*args.data, args.library if str(args.library).endswith(".py") else None])
     accelerations = _accelerations(states, args.kinematics)
-    optional = _unmeasured_allowed(states, args.kinematics, _names(args.latent))
+    # without pairs, a state no record holds is latent (the upper of two tanks), as in identify
+    optional = _unmeasured_allowed(states, args.kinematics) if args.kinematics else tuple(states)
     records = _read_all(args, args.data, states + accelerations + outputs, inputs, optional=optional)
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     derivative = _identify_derivative(args)
@@ -554,7 +553,12 @@ def _data_options(p, *, states: bool = True, optional: bool = False, several: bo
     else:
         p.add_argument("data", nargs="?" if optional else None, help="CSV with a header row, .npz or .mat")
     if states:
-        p.add_argument("--states", required=not optional, help="comma-separated state columns, e.g. x1,x2")
+        p.add_argument(
+            "--states",
+            required=not optional,
+            help="comma-separated state columns, e.g. x1,x2; identify takes a state DATA lacks for unmeasured (a "
+            "member of a --kinematics pair) or latent (a law of its own: the upper of two tanks)",
+        )
         p.add_argument("--inputs", default="", help="comma-separated input columns, e.g. F")
     p.add_argument("--time", default="t", help="time column (default: t; '' for none, then --fs is needed)")
     p.add_argument(
@@ -617,14 +621,6 @@ def _add_identify_model(p) -> None:
         metavar="NAME[,...]",
         help="columns with an equation of their own over the library (a force cell), identified with the "
         "states, e.g. --outputs Fc",
-    )
-    p.add_argument(
-        "--latent",
-        default="",
-        metavar="NAME[,...]",
-        help="states of --states that no record measures, with a law of their own identified from the measured "
-        "ones (a hidden level, a hysteretic force), e.g. --states x1,x2 --latent x1; with --kinematics, any state "
-        "outside its pairs is latent already",
     )
 
 

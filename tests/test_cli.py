@@ -153,7 +153,7 @@ def test_library_file(files, capsys, tmp_path):
 @pytest.mark.parametrize(
     "make, argv, message",
     [
-        (None, ["--states", "x1,q"], r"q"),
+        (None, ["--states", "q,r"], r"--states: expected at least one column of DATA, received none of q,r$"),
         (
             None,
             ["--states", "x1,x2", "--library", "LIBFILE"],

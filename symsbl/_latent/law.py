@@ -31,25 +31,28 @@ from .periodic import Spectra, raised_cosine
 __all__ = ["homogeneous_terms", "WeakForm", "screen", "evaluate"]
 
 
-def _is_homogeneous(expr: sp.Expr) -> bool:
-    """A product of symbols, integer powers, absolute values and signs of symbols (no sums, no constants but 1)."""
+def _is_homogeneous(expr: sp.Expr, fractional: bool = False) -> bool:
+    """A product of symbols, integer powers (positive rational ones if ``fractional``: a square root), absolute
+    values and signs of symbols (no sums, no constants but 1)."""
     if expr == 1 or expr.is_Symbol:
         return True
     if isinstance(expr, (sp.Abs, sp.sign)):
         return expr.args[0].is_Symbol
     if expr.is_Pow:
-        return expr.exp.is_Integer and expr.exp > 0 and _is_homogeneous(expr.base)
+        power = expr.exp.is_Rational if fractional else expr.exp.is_Integer
+        return bool(power) and expr.exp > 0 and _is_homogeneous(expr.base, fractional)
     if expr.is_Mul:
-        return all(_is_homogeneous(a) for a in expr.args)
+        return all(_is_homogeneous(a, fractional) for a in expr.args)
     return False
 
 
-def homogeneous_terms(terms, allowed: set[str], exclude=()) -> list[Term]:
-    """The terms of ``terms`` that are homogeneous in the variables and use only the ``allowed`` ones."""
+def homogeneous_terms(terms, allowed: set[str], exclude=(), fractional: bool = False) -> list[Term]:
+    """The terms of ``terms`` that are homogeneous in the variables and use only the ``allowed`` ones (see
+    :func:`_is_homogeneous` for ``fractional``)."""
     out = []
     for term in terms:
         names = {s.name for s in term.sympy.free_symbols}
-        if names <= allowed and term.name not in exclude and _is_homogeneous(term.sympy):
+        if names <= allowed and term.name not in exclude and _is_homogeneous(term.sympy, fractional):
             out.append(term)
     return out
 
