@@ -110,12 +110,14 @@ def test_trajectories_against_the_linear_response_in_closed_form():
 
 def test_leaders_are_the_best_of_each_drive_and_law_near_the_best():
     (z,) = symsbl.symbols("z")
+    u, x2 = symsbl.symbols("u x2")
     lin, root = symsbl.Library([z], [z]).terms[0], symsbl.elementwise([z], ["sqrt"]).terms[0]
+    flow, level = symsbl.Library([u], [u]).terms[0], symsbl.Library([x2], [x2]).terms[0]
     found = [
-        driven.Candidate("u", root, 0.8, 3.0, 1000.0),
-        driven.Candidate("u", root, 0.6, 5.0, 990.0),
-        driven.Candidate("x2", lin, 0.5, 2.0, 980.0),
-        driven.Candidate("u", lin, 0.3, 3.0, 1000.0 - driven.SCREEN_NATS - 1),
+        driven.Candidate(flow, root, 0.8, 3.0, 1000.0),
+        driven.Candidate(flow, root, 0.6, 5.0, 990.0),
+        driven.Candidate(level, lin, 0.5, 2.0, 980.0),
+        driven.Candidate(flow, lin, 0.3, 3.0, 1000.0 - driven.SCREEN_NATS - 1),
     ]
     assert driven.leaders(found) == [found[0], found[2]]
     assert driven.leaders(found, most=1) == [found[0]]
@@ -164,7 +166,7 @@ def test_the_upper_tank_identified_from_the_lower_level_alone():
         assert found[key] == pytest.approx(value, rel=0.01), key
     info = model.metadata["latent"]
     assert info["verdict"] == "hidden" and info["start"] == "driven"
-    assert info["screened_law"]["law"] == "sqrt(x1)" and info["screened_law"]["drive"] == "u"
+    assert info["screened_law"] == {**info["screened_law"], "law": "sqrt(x1)", "drive": "u"}
     held, clean = truth.record(seed=1, noise=0.0, noise_seed=0)
     assert symsbl.validate_model(model, held).nrmse["x2"] < 0.002
 
@@ -218,3 +220,41 @@ def test_command_line_with_a_level_the_data_lack(tmp_path, capsys):
         == 0
     )
     assert json.loads((tmp_path / "v.json").read_text())["nrmse"]["x2"] < 0.003
+
+
+@pytest.mark.slow
+def test_the_middle_of_three_tanks_driven_by_the_outflow_above():
+    """``x2' = 0.5 sqrt(x1) - 0.4 sqrt(x2)`` between two measured tanks: its drive is the upper tank's outflow, a
+    library term of a measured level (with ``u`` as the drive the fit predicted as well but kept ``u`` and
+    ``sqrt(x1)`` side by side)."""
+    x1, x2, x3, u = symsbl.symbols("x1 x2 x3 u")
+    rhs = (-0.5 * ca.sqrt(x1) + 0.4 * u, 0.5 * ca.sqrt(x1) - 0.4 * ca.sqrt(x2), 0.4 * ca.sqrt(x2) - 0.3 * ca.sqrt(x3))
+    three = symsbl.OdeSystem(states=(x1, x2, x3), inputs=(u,), rhs=rhs)
+    rest = [0.8**2, 1.0**2, (4 / 3) ** 2]  # the equilibrium at u = 1
+
+    def levels(seed, noise):
+        flow = excitation(seed)
+        t = np.arange(flow.size) / FS
+        clean = symsbl.simulate(three, t, inputs=flow, x0=rest)
+        rng = np.random.default_rng(seed + 20)
+        X = np.column_stack([clean.column(n) for n in ("x1", "x3")])
+        X = X + noise * X.std(axis=0) * rng.standard_normal(X.shape)
+        return symsbl.Trajectory(t, X, flow[:, None], ("x1", "x3"), ("u",))
+
+    library = symsbl.polynomial([x1, x2, x3], 1) + symsbl.elementwise([x1, x2, x3], ["sqrt"]) + symsbl.inputs([u])
+    model = symsbl.identify(levels(0, 0.005), library, states=("x1", "x2", "x3"))
+    root = math.sqrt(0.5)  # x2 / 0.5 is the latent level: the outflow's coefficient in x2' is 1
+    exact = {
+        ("x1", "sqrt(x1)"): -0.5,
+        ("x1", "u"): 0.4,
+        ("x2", "sqrt(x2)"): -0.4 / root,
+        ("x3", "sqrt(x2)"): 0.4 * root,
+        ("x3", "sqrt(x3)"): -0.3,
+    }
+    found = coefficients(model)
+    assert set(found) == set(exact)
+    for key, value in exact.items():
+        assert found[key] == pytest.approx(value, rel=0.01), key
+    assert model.metadata["latent"]["screened_law"]["drive"] == "sqrt(x1)"
+    check = symsbl.validate_model(model, levels(1, 0.0))
+    assert max(check.nrmse.values()) < 0.002

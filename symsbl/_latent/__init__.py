@@ -283,7 +283,7 @@ def _driven_starts(trajectories, library: Library, names, pairs, z: str, found, 
     starts = {"nothing hidden": _visible_start(trajectories, plain, visible, pairs, fitting)}
     data, libraries, leaders = {"nothing hidden": trajectories}, {"nothing hidden": plain}, {}
     for c in driven.leaders(found):
-        key = f"{z}' = {c.drive} - a {c.law.name}"
+        key = f"{z}' = {c.drive.name} - a {c.law.name}"
         try:
             data[key] = driven.guesses(c, trajectories, z, names)
             starts[key] = driven.start_model(c, data[key][lead], library, names, z, pairs, fitting)

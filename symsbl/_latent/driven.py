@@ -5,8 +5,8 @@ of a cascade whose lower level alone is measured), its law is looked for among
 
     z' = d - a phi(z),
 
-``d`` a measured signal (an input, else a measured state) and ``phi`` a library term of ``z`` alone, ``a``
-on a grid of rates. The coefficient of ``d`` is held at 1, the scale convention the model prints: a
+``d`` a measured signal (an input, else a measured state) or a library term of one (the outflow ``sqrt(x1)``
+of a tank above) and ``phi`` a library term of ``z`` alone, ``a`` on a grid of rates. The coefficient of ``d`` is held at 1, the scale convention the model prints: a
 latent state is known up to a scale that the terms it enters absorb (``sqrt(s z) = sqrt(s) sqrt(z)``), so
 ``z`` is the level in the units of ``d`` times time. Each candidate is simulated from the measured ``d``
 alone, from its stable equilibrium at the mean of ``d``, and the measured equations are regressed by the
@@ -78,8 +78,9 @@ class Candidate:
 
     Attributes
     ----------
-    drive : str
-        The measured signal ``d``.
+    drive : Term
+        The measured signal ``d``: a measured state or input, or a homogeneous library term of one (``sqrt(x1)``,
+        the outflow of a tank above).
     law : Term
         ``phi(z)``.
     rate : float
@@ -90,25 +91,37 @@ class Candidate:
         The measured equations' summed log evidence with ``z`` simulated (nats).
     """
 
-    drive: str
+    drive: Term
     law: Term
     rate: float
     tau: float
     score: float
 
     def to_json(self) -> dict:
-        return {"drive": self.drive, "law": self.law.name, "rate": self.rate, "tau": self.tau, "score": self.score}
+        return {"drive": self.drive.name, "law": self.law.name, "rate": self.rate, "tau": self.tau, "score": self.score}
 
 
 def laws(library: Library, latent: str, signals) -> tuple[list, list]:
-    """The candidate drives (the measured ``signals``, inputs first) and the laws: the library's terms in
-    ``latent`` alone that are homogeneous (``z``, ``sqrt(z)``, ``z|z|``, ...; ``z``'s scale is a convention, so
-    ``sin(z)`` would be an accident of units), ``z`` itself always among them."""
+    """The candidate drives and laws, homogeneous terms of one variable each (``z``, ``sqrt(z)``, ``z|z|``, ...;
+    ``z``'s scale is a convention, so ``sin(z)`` would be an accident of units): the drives, each measured
+    ``signal`` (inputs first) and the library's terms of it alone; the laws, the library's terms of ``latent``
+    alone, ``z`` itself always among them."""
     symbols = {s.name(): s for s in library.variables}
-    phis = homogeneous_terms(library.terms, {latent}, exclude={"1"}, fractional=True)
-    if latent not in [t.name for t in phis]:
-        phis = [Term(symbols[latent]), *phis]
-    return [n for n in signals if n in symbols], phis
+
+    def of(name: str) -> list:
+        terms = homogeneous_terms(library.terms, {name}, exclude={"1", name}, fractional=True)
+        return [Term(symbols[name]), *terms]
+
+    return [t for n in signals if n in symbols for t in of(n)], of(latent)
+
+
+def _values(term: Term, record: Trajectory) -> np.ndarray:
+    """A term of one variable at every sample of ``record``."""
+    (symbol,) = term.sympy.free_symbols
+    f = sp.lambdify(symbol, term.sympy, "numpy")
+    x = record.column(symbol.name)
+    with np.errstate(all="ignore"):
+        return np.broadcast_to(f(x), x.shape).astype(float)
 
 
 def _numeric(term: Term):
@@ -197,8 +210,10 @@ def screen(record: Trajectory, library: Library, states, latent: str, pairs, fit
     drives, phis = laws(library, latent, [*record.input_names, *measured])
     cut = int(SETTLE * record.n_samples)
     found = []
-    for name in drives:
-        d = record.column(name)
+    for drive in drives:
+        d = _values(drive, record)
+        if not np.all(np.isfinite(d)):
+            continue
         for term in phis:
             rates, z0, taus = _rates(term, float(np.mean(d)), record.dt, record.t[-1] - record.t[0])
             if not rates.size:
@@ -207,7 +222,7 @@ def screen(record: Trajectory, library: Library, states, latent: str, pairs, fit
             for k in np.flatnonzero(np.all(np.isfinite(Z), axis=0)):
                 score = _score(record.slice(cut), Z[cut:, k], library, latent, measured, pairs, fitting)
                 if score is not None:
-                    found.append(Candidate(name, term, float(rates[k]), float(taus[k]), score))
+                    found.append(Candidate(drive, term, float(rates[k]), float(taus[k]), score))
     return sorted(found, key=lambda c: -c.score)
 
 
@@ -219,8 +234,8 @@ def leaders(found, most: int = LEADERS) -> list:
     for c in found:
         if c.score < found[0].score - SCREEN_NATS:
             break
-        if (c.drive, c.law.name) not in seen and len(out) < most:
-            seen.add((c.drive, c.law.name))
+        if (c.drive.name, c.law.name) not in seen and len(out) < most:
+            seen.add((c.drive.name, c.law.name))
             out.append(c)
     return out
 
@@ -275,7 +290,7 @@ def guesses(best: Candidate, records, latent: str, states) -> list:
     """Each record with the best law's simulated latent state as a column (the refinement's starting guess)."""
     out = []
     for r in records:
-        d = r.column(best.drive)
+        d = _values(best.drive, r)
         z0, _ = equilibria(best.law, np.array([best.rate]), float(np.mean(d)))
         z = trajectories(best.law, d, np.array([best.rate]), z0, r.dt)[:, 0]
         if not np.all(np.isfinite(z)):
@@ -299,10 +314,9 @@ def start_model(best: Candidate, record: Trajectory, library: Library, states, l
                 raw=True,
             )
         )
-    symbols = {s.name(): s for s in library.variables}
     a = best.rate
     law = (
-        TermEstimate(expr=symbols[best.drive], coef=1.0, std=0.0, fixed=True),
+        TermEstimate(expr=best.drive.expr, coef=1.0, std=0.0, fixed=True),
         TermEstimate(expr=best.law.expr, coef=-a, std=0.01 * a),
     )
     equation = Equation(latent, law, np.diag([0.0, (0.01 * a) ** 2]), math.nan, math.nan, 0)
