@@ -266,6 +266,13 @@ def _cmd_identify(args) -> int:
     # without pairs, a state no record holds is latent (the upper of two tanks), as in identify
     optional = _unmeasured_allowed(states, args.kinematics) if args.kinematics else tuple(states)
     records = _read_all(args, args.data, states + accelerations + outputs, inputs, optional=optional)
+    if not args.kinematics:  # a typo or a velocity whose pair was left out reads as latent: say so first
+        for name in (s for s in states if s not in records[0].state_names):
+            print(
+                f"symsbl identify: note: {name} is not a column of DATA: it is identified as a latent state, with a "
+                f"law of its own (if it is a velocity, declare its pair: --kinematics <position>:{name})",
+                file=sys.stderr,
+            )
     library = _library(args.library, symbols(states), symbols(inputs) if inputs else (), args.degree)
     derivative = _identify_derivative(args)
     model = _identify_model(args, records, library, derivative, states, outputs)
@@ -405,8 +412,9 @@ def _latent_summary(info: dict) -> str:
     branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
     if info.get("start") == "driven":
         law = info["screened_law"]
+        how = "started from" if info["verdict"] == "hidden" else "best screened"
         return (
-            f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} (started from "
+            f"latent state {info['latent']}: {info['verdict']}; log evidence by branch: {branches} ({how} "
             f"{info['latent']}' = {law['drive']} - {law['rate']:.3g} {law['law']}, time constant {law['tau']:.3g} s, "
             f"of {info['n_candidates']} laws screened)"
         )

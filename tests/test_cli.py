@@ -150,6 +150,21 @@ def test_library_file(files, capsys, tmp_path):
     assert "x1^3" in out
 
 
+def test_a_state_the_data_lack_is_named_before_it_is_identified_as_latent(files, capsys):
+    """Without --kinematics, ``q`` (a typo, or a velocity whose pair was left out) reads as latent: a note says so
+    before any work, and an option the latent path refuses still fails in one line."""
+    code, out, err = run(
+        ["identify", str(files / "train.csv"), "--states", "x1,q", "--inputs", "F", "--no-refine"], capsys
+    )
+    assert code == 2
+    note, error = err.strip().splitlines()
+    assert note == (
+        "symsbl identify: note: q is not a column of DATA: it is identified as a latent state, with a law of its own "
+        "(if it is a velocity, declare its pair: --kinematics <position>:q)"
+    )
+    assert error.startswith("symsbl identify: error: ") and "when a state is latent" in error
+
+
 @pytest.mark.parametrize(
     "make, argv, message",
     [

@@ -284,6 +284,7 @@ DOUBTS_PRINTED = (
     "the chosen structure leaves",
     "indistinguishable here from",
     "latent state ",
+    "is not a column of DATA: it is identified as a latent state",
     "where output error is biased; the equation-error",
     "ambiguous between",
     "does not predict held-out records",

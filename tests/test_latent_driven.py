@@ -123,6 +123,19 @@ def test_leaders_are_the_best_of_each_drive_and_law_near_the_best():
     assert driven.leaders(found, most=1) == [found[0]]
 
 
+def test_the_verdict_takes_the_best_start_by_the_penalty_and_names_ties_by_the_screen():
+    from symsbl._latent import _driven_verdict
+
+    leaders = {"z' = u - a z": None, "z' = u - a sqrt(z)": None}  # in the screen's order
+    scores = {"nothing hidden": 100.0, "z' = u - a z": 120.0, "z' = u - a sqrt(z)": 120.0 + 1e-4}
+    assert _driven_verdict(scores, leaders, penalty=10.0) == "z' = u - a z"  # one model from two starts
+    scores["z' = u - a sqrt(z)"] = 125.0
+    assert _driven_verdict(scores, leaders, penalty=10.0) == "z' = u - a sqrt(z)"
+    assert _driven_verdict(scores, leaders, penalty=25.0) is None  # not by the penalty: nothing hidden
+    del scores["nothing hidden"]  # its refinement diverged
+    assert _driven_verdict(scores, leaders, penalty=25.0) == "z' = u - a sqrt(z)"
+
+
 def test_a_latent_state_starts_where_its_fit_started_it():
     """The exact model of two tanks, re-simulated on a held-out record: from its fitted latent level it is at
     the noise floor; from zero (a level under a square root has no derivative there) the initial-state fit

@@ -223,9 +223,15 @@ def identify_latent(
 
 def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitting: Fitting) -> IdentifiedModel:
     """One latent state beside measured states (see :mod:`.driven`): the laws screened on the longest record, the
-    best one and the "nothing hidden" model of the measured states refined on every record, the verdict by
+    leaders and the "nothing hidden" model of the measured states refined on every record, the verdict by
     evidence as on a structure."""
     clock = _Clock()
+    plain = Library(
+        [t for t in library.terms if z not in {s.name for s in t.sympy.free_symbols}],
+        [s for s in library.variables if s.name() != z],
+    )
+    # first: a library the measured records cannot feed fails here, by name, not as "no law"
+    visible = _visible_start(trajectories, plain, [n for n in names if n != z], pairs, fitting)
     lead = int(np.argmax([r.n_samples for r in trajectories]))
     found = driven.screen(trajectories[lead], library, names, z, pairs, fitting)
     clock("law screen")
@@ -234,37 +240,40 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
             expected(
                 "data",
                 f"a record on which some law {z}' = d - a phi({z}) of the library can be simulated from a measured d",
-                "every candidate left its law's domain or could not be regressed on",
-                f"add terms of {z} alone to the library (e.g. {z}, sqrt({z}))",
+                "every candidate left its law's domain or had no equilibrium at the mean drive",
+                f"add homogeneous terms of {z} alone to the library (e.g. {z}, sqrt({z}))",
                 raw=True,
             )
         )
-    starts, data, libraries, leaders = _driven_starts(trajectories, library, names, pairs, z, found, lead, fitting)
+    starts, data, leaders, skipped = _driven_starts(trajectories, library, names, pairs, z, found, lead, fitting)
+    starts, data = {"nothing hidden": visible, **starts}, {"nothing hidden": trajectories, **data}
+    libraries = {k: library if k in leaders else plain for k in starts}
     options = dataclasses.replace(fitting.options, doubts="report")
     rule = dataclasses.replace(fitting.rule, model_choice="evidence")
     fits, caught, failed = _refine_branches(starts, data, libraries, options, rule, clock)
     scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
-    penalty = fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), len(found))
-    best = _driven_verdict(scores, leaders, penalty)
-    hidden = best is not None
+    structures = len({(c.drive.name, c.law.name) for c in found})  # the rates are one structure's values
+    best = _driven_verdict(
+        scores, leaders, fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), structures)
+    )
     winner = best or "nothing hidden"
     for w in caught[winner]:
         warnings.warn(w.message, w.category, stacklevel=3)
     chosen = _as_asked(fits[winner], data[winner], libraries[winner], options, fitting, clock)
     symbols = {s.name(): s for s in library.variables}
-    final = chosen if hidden else unused(chosen, tuple(symbols[n] for n in names), z)
+    final = chosen if best else unused(chosen, tuple(symbols[n] for n in names), z)
     summary = {
-        "verdict": "hidden" if hidden else "nothing hidden",
+        "verdict": "hidden" if best else "nothing hidden",
         "latent": z,
         "start": "driven",
-        "screened_law": (leaders[winner] if hidden else found[0]).to_json(),
+        "screened_law": (leaders[best] if best else found[0]).to_json(),
         "candidates": [c.to_json() for c in leaders.values()],
         "n_candidates": len(found),
         "branches": {
             k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
             for k, f in fits.items()
         },
-        "failed": failed,
+        "failed": {**skipped, **failed},
         "records": len(trajectories),
         "screened_on": lead,
         "seconds": clock.times,
@@ -273,24 +282,20 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
 
 
 def _driven_starts(trajectories, library: Library, names, pairs, z: str, found, lead: int, fitting: Fitting):
-    """The branches' starts, records (with each law's latent guess), libraries, and the screened candidate of each
-    hidden branch: "nothing hidden" (the measured states alone) and each of :func:`.driven.leaders`."""
-    visible = [n for n in names if n != z]
-    plain = Library(
-        [t for t in library.terms if z not in {s.name for s in t.sympy.free_symbols}],
-        [s for s in library.variables if s.name() != z],
-    )
-    starts = {"nothing hidden": _visible_start(trajectories, plain, visible, pairs, fitting)}
-    data, libraries, leaders = {"nothing hidden": trajectories}, {"nothing hidden": plain}, {}
+    """The hidden branches of :func:`.driven.leaders`: their starts, records (with each law's latent guess) and
+    screened candidates by branch name, and the leaders that could not start, with why."""
+    starts, data, leaders, skipped = {}, {}, {}, {}
     for c in driven.leaders(found):
         key = f"{z}' = {c.drive.name} - a {c.law.name}"
         try:
             data[key] = driven.guesses(c, trajectories, z, names)
             starts[key] = driven.start_model(c, data[key][lead], library, names, z, pairs, fitting)
-        except SimulationError:  # its law leaves its domain on another record
+        except SimulationError as error:  # its law leaves its domain on another record
+            data.pop(key, None)
+            skipped[key] = str(error)
             continue
-        libraries[key], leaders[key] = library, c
-    return starts, data, libraries, leaders
+        leaders[key] = c
+    return starts, data, leaders, skipped
 
 
 def _driven_verdict(scores: dict, leaders: dict, penalty: float) -> str | None:

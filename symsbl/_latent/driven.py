@@ -5,20 +5,21 @@ of a cascade whose lower level alone is measured), its law is looked for among
 
     z' = d - a phi(z),
 
-``d`` a measured signal (an input, else a measured state) or a library term of one (the outflow ``sqrt(x1)``
-of a tank above) and ``phi`` a library term of ``z`` alone, ``a`` on a grid of rates. The coefficient of ``d`` is held at 1, the scale convention the model prints: a
-latent state is known up to a scale that the terms it enters absorb (``sqrt(s z) = sqrt(s) sqrt(z)``), so
-``z`` is the level in the units of ``d`` times time. Each candidate is simulated from the measured ``d``
-alone, from its stable equilibrium at the mean of ``d``, and the measured equations are regressed by the
-relevance vector machine on the library with the simulated ``z`` as one more column; a candidate scores the
-sum of their log evidences (the rows of the first :data:`SETTLE` of the record left out: the start's
-transient). The best candidate starts an output-error refinement (:func:`symsbl.refine`) of every
-coefficient, ``a`` and the law's terms with them, against the "nothing hidden" model of the measured states
-alone.
+``d`` a measured signal (an input, else a measured state) or a library term of one (the outflow
+``sqrt(x1)`` of a tank above) and ``phi`` a library term of ``z`` alone, ``a`` on a grid of rates. The
+coefficient of ``d`` is held at 1, the scale convention the model prints: a latent state is known up to a
+scale that the terms it enters absorb (``sqrt(s z) = sqrt(s) sqrt(z)``), so ``z`` is the level in the units
+of ``d`` times time. Each candidate is simulated from the measured ``d`` alone, from its stable equilibrium
+at the mean of ``d``, and the measured equations are regressed by the relevance vector machine on the
+library with the simulated ``z`` as one more column; a candidate scores the sum of their log evidences (the
+rows of the first :data:`SETTLE` of the record left out: the start's transient). The best candidate of each
+(drive, law) near the best (:func:`leaders`) starts an output-error refinement (:func:`symsbl.refine`) of
+every coefficient, ``a`` and the law's terms with them, beside the "nothing hidden" model of the measured
+states alone.
 
 Measured on two tanks in cascade (``x1' = -0.5 sqrt(x1) + 0.4 u``, ``x2' = 0.5 sqrt(x1) - 0.4 sqrt(x2)``,
 ``x2`` alone measured, 0.5 % noise, 600 s at 5 Hz; library: degree-2 polynomials, ``sqrt`` of both levels
-and ``u``): of 90 candidates, ``phi = sqrt(z)`` by ``u`` at ``a = 0.79`` (true 0.5/sqrt(0.4) = 0.79) scored
+and ``u``): of 180 candidates, ``phi = sqrt(z)`` by ``u`` at ``a = 0.79`` (true 0.5/sqrt(0.4) = 0.79) scored
 204 nats above the next (a linear law), and the output error from it left every coefficient within 0.1 %, in
 4 s of CPU.
 """
@@ -98,6 +99,7 @@ class Candidate:
     score: float
 
     def to_json(self) -> dict:
+        """The candidate as ``metadata["latent"]`` records it."""
         return {"drive": self.drive.name, "law": self.law.name, "rate": self.rate, "tau": self.tau, "score": self.score}
 
 
@@ -158,6 +160,7 @@ def equilibria(term: Term, rates: np.ndarray, level: float) -> tuple[np.ndarray,
 
 
 def _bisect(f, lo: float, hi: float) -> float:
+    """The root of ``f`` between ``lo`` and ``hi``, where its sign changes."""
     flo = np.sign(f(lo))
     for _ in range(80):
         mid = 0.5 * (lo + hi)
@@ -287,7 +290,8 @@ def _score(record, z, library, latent, measured, pairs, fitting) -> float | None
 
 
 def guesses(best: Candidate, records, latent: str, states) -> list:
-    """Each record with the best law's simulated latent state as a column (the refinement's starting guess)."""
+    """Each record with the candidate ``best``'s simulated latent state as a column (the refinement's starting
+    guess)."""
     out = []
     for r in records:
         d = _values(best.drive, r)
@@ -295,7 +299,13 @@ def guesses(best: Candidate, records, latent: str, states) -> list:
         z = trajectories(best.law, d, np.array([best.rate]), z0, r.dt)[:, 0]
         if not np.all(np.isfinite(z)):
             raise SimulationError(
-                expected(f"latent law {best.law.name}", "a simulation that stays finite", "non-finite values", raw=True)
+                expected(
+                    f"latent law {best.law.name} driven by {best.drive.name}",
+                    "a simulation that stays finite on every record",
+                    "non-finite values (no equilibrium at a record's mean drive, or the law left its domain)",
+                    "leave that record out, or add laws of the latent state to the library",
+                    raw=True,
+                )
             )
         out.append(with_latent(r, latent, z, states))
     return out
@@ -310,7 +320,8 @@ def start_model(best: Candidate, record: Trajectory, library: Library, states, l
             expected(
                 "measured equations",
                 f"a regression on the latent law {best.law.name}",
-                "a library that cannot be evaluated",
+                "a library that cannot be evaluated on the records",
+                "check the library's terms on the measured range (a square root of a negative level)",
                 raw=True,
             )
         )

@@ -84,8 +84,9 @@ def to_model(engine: Engine, sol: Solution, info: dict) -> IdentifiedModel:
 
 
 def _latent_start(engine: Engine, sol: Solution) -> dict:
-    """``{"latent_start": {state: median fitted initial value}}`` for the latent states: where a record's latent
-    state starts when nothing else says (a level under a square root cannot start at zero)."""
+    """``{"latent_start": {state: median fitted initial value}}`` for the latent states (over the records' and
+    segments' starts): where a record's latent state starts when nothing else says (a level under a square root
+    cannot start at zero)."""
     names = engine.model.state_names
     latent = latent_of(names, engine.outputs, engine.model.kinematics)
     return {"latent_start": {n: float(np.median(sol.X0[:, names.index(n)])) for n in latent}} if latent else {}

@@ -4,8 +4,6 @@ rows on which candidate terms are compared.
 
 from __future__ import annotations
 
-import math
-
 import casadi as ca
 import numpy as np
 
@@ -29,38 +27,18 @@ GUESS_SAMPLES = 2**14
 def state_guess(model: IdentifiedModel, records, measured) -> np.ndarray:
     """Every state at every sample of ``records`` laid end to end: the records' columns of the states (a column
     of a state that is not measured is a guess only), the members of each kinematic pair reconstructed from the
-    measured ones (a velocity from its position, a position or velocity from an acceleration), a latent state at
-    its :func:`latent_start`, zeros.
+    measured ones (a velocity from its position, a position or velocity from an acceleration), zeros.
     ``measured``: the channels (names or outputs) fitted."""
     triples = _triples(model, measured)
-    start = latent_start(model)
     rows = []
     for r in records:
         G = np.zeros((r.n_samples, len(model.states)))
         columns = completed_columns(r, model.state_names, triples)
-        for name, value in start.items():
-            G[:, model.state_names.index(name)] = value
         for k, name in enumerate(model.state_names):
             if name in columns:
                 G[:, k] = columns[name]
         rows.append(G)
     return np.vstack(rows)
-
-
-def latent_start(model: IdentifiedModel) -> dict:
-    """Where each latent state of ``model`` starts when no record says: the median of its fitted initial states
-    (``metadata["refine"]["latent_start"]``; a model file's metadata is data, so a value that is not a finite
-    number is ignored), else zero. A level under a square root has no derivative at zero: started there, the
-    initial-state fit of a held-out record of two tanks diverged."""
-    fitted = model.metadata.get("refine")
-    given = fitted.get("latent_start") if isinstance(fitted, dict) else None
-    if not isinstance(given, dict):
-        return {}
-    return {
-        n: float(v)
-        for n, v in given.items()
-        if n in model.state_names and isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    }
 
 
 def _triples(model: IdentifiedModel, measured) -> list[tuple]:
