@@ -47,8 +47,6 @@ from .._base.errors import DataError, SimulationError, expected
 from .._base.rule import SelectionRule
 from .._model import IdentifiedModel
 from .._refine import RefineOptions, refine
-from .._regression.fit import fit_stats
-from .._regression.rows import regression_stats
 from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
 from . import driven
@@ -208,7 +206,7 @@ def identify_latent(
     data = [r.slice(c.start) for r, c in zip(trajectories, cuts)]
     candidates = stages.candidates(library.variables)
     rule = dataclasses.replace(fitting.rule, model_choice="evidence")
-    fits, caught, failed = _refine_branches(starts, data, candidates, options, rule, clock)
+    fits, caught, failed = _refine_branches(starts, dict.fromkeys(starts, data), candidates, options, rule, clock)
     verdict, best, scores = builder.verdict(fits, sum(d.n_samples for d in data), stages.n_candidates, fitting.rule)
     for w in caught[best]:  # the losing branches' warnings say only that they lose
         warnings.warn(w.message, w.category, stacklevel=3)
@@ -309,9 +307,7 @@ def _driven_verdict(scores: dict, leaders: dict, penalty: float) -> str | None:
 def _visible_start(trajectories, library: Library, states, pairs, fitting: Fitting) -> IdentifiedModel:
     """The "nothing hidden" start: the measured states' equation-error model on a library without the latent
     state."""
-    records = [r.with_states(states) for r in trajectories]
-    problem = regression_stats(records, library, chunk_size=fitting.chunk_size, jit=fitting.jit, states=states)
-    return fit_stats(problem, rvm=fitting.rvm, kinematics=pairs, selection=fitting.rule)
+    return driven.regress([r.with_states(states) for r in trajectories], library, states, pairs, fitting)
 
 
 def _host(record, cut, periodic: bool, library: Library, pairs, channels, fitting: Fitting, clock):
@@ -365,17 +361,16 @@ def _as_asked(fit: IdentifiedModel, data, library, options: RefineOptions, fitti
     return again
 
 
-def _refine_branches(starts, data, candidates, options: RefineOptions, rule: SelectionRule, clock):
-    """Each branch refined from its start on ``data`` (the records, or a dict of each branch's): the fits, the
-    warnings of each, the branches that failed."""
+def _refine_branches(starts, data: dict, candidates, options: RefineOptions, rule: SelectionRule, clock):
+    """Each branch refined from its start on its records ``data[branch]``: the fits, the warnings of each, the
+    branches that failed."""
     fits, caught = {}, {}
     failed = {}
     for name, start in starts.items():
         with warnings.catch_warnings(record=True) as caught[name]:
             warnings.simplefilter("always")
             try:
-                records = data[name] if isinstance(data, dict) else data
-                fits[name] = refine(start, records, library=candidates.get(name), options=options, selection=rule)
+                fits[name] = refine(start, data[name], library=candidates.get(name), options=options, selection=rule)
             except (SimulationError, np.linalg.LinAlgError) as error:  # this branch's start runs away
                 failed[name] = str(error)
         clock(f"{name} branch")

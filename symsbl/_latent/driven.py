@@ -47,6 +47,9 @@ __all__ = [
     "Candidate",
     "laws",
     "leaders",
+    "guesses",
+    "with_latent",
+    "regress",
     "LEADERS",
     "SCREEN_NATS",
     "equilibria",
@@ -117,23 +120,26 @@ def laws(library: Library, latent: str, signals) -> tuple[list, list]:
     return [t for n in signals if n in symbols for t in of(n)], of(latent)
 
 
+def _function(term: Term):
+    """A term of one variable as a numpy function of an array."""
+    (symbol,) = term.sympy.free_symbols
+    f = sp.lambdify(symbol, term.sympy, "numpy")
+    return lambda values: np.broadcast_to(f(values), np.shape(values)).astype(float)
+
+
 def _values(term: Term, record: Trajectory) -> np.ndarray:
     """A term of one variable at every sample of ``record``."""
     (symbol,) = term.sympy.free_symbols
-    f = sp.lambdify(symbol, term.sympy, "numpy")
-    x = record.column(symbol.name)
     with np.errstate(all="ignore"):
-        return np.broadcast_to(f(x), x.shape).astype(float)
+        return _function(term)(record.column(symbol.name))
 
 
 def _numeric(term: Term):
     """``phi`` as a numpy function of an array, and ``phi'`` of a number (CasADi's derivative: a sign's is zero,
     where sympy's is a Dirac delta)."""
-    (symbol,) = term.sympy.free_symbols
-    f = sp.lambdify(symbol, term.sympy, "numpy")
-    (z,) = [v for v in ca.symvar(term.expr)]
+    (z,) = ca.symvar(term.expr)
     df = ca.Function("slope", [z], [ca.jacobian(term.expr, z)])
-    return (lambda values: np.broadcast_to(f(values), np.shape(values)).astype(float)), (lambda value: float(df(value)))
+    return _function(term), (lambda value: float(df(value)))
 
 
 #: Where equilibria are looked for: zero and magnitudes from 1e-8 to 1e8 of either sign.
@@ -212,6 +218,7 @@ def screen(record: Trajectory, library: Library, states, latent: str, pairs, fit
     measured = [n for n in states if n != latent]
     drives, phis = laws(library, latent, [*record.input_names, *measured])
     cut = int(SETTLE * record.n_samples)
+    settled = record.slice(cut).with_states(measured)  # the rows every candidate is scored on
     found = []
     for drive in drives:
         d = _values(drive, record)
@@ -223,7 +230,7 @@ def screen(record: Trajectory, library: Library, states, latent: str, pairs, fit
                 continue
             Z = trajectories(term, d, rates, z0, record.dt)
             for k in np.flatnonzero(np.all(np.isfinite(Z), axis=0)):
-                score = _score(record.slice(cut), Z[cut:, k], library, latent, measured, pairs, fitting)
+                score = _score(settled, Z[cut:, k], library, latent, pairs, fitting)
                 if score is not None:
                     found.append(Candidate(drive, term, float(rates[k]), float(taus[k]), score))
     return sorted(found, key=lambda c: -c.score)
@@ -250,27 +257,34 @@ def with_latent(record: Trajectory, latent: str, z: np.ndarray, states) -> Traje
     return Trajectory(record.t, X, record.inputs, tuple(states), record.input_names)
 
 
+def regress(records, library: Library, states, pairs, fitting) -> IdentifiedModel:
+    """The equation-error model of ``records`` (every one of ``states`` a column), as :func:`symsbl.identify` fits
+    it with ``fitting``'s options."""
+    problem = regression_stats(
+        records, library, derivative="weak", chunk_size=fitting.chunk_size, jit=fitting.jit, states=states
+    )
+    return fit_stats(problem, rvm=fitting.rvm, kinematics=pairs, selection=fitting.rule)
+
+
 def _fit(record: Trajectory, library: Library, states, pairs, fitting) -> IdentifiedModel | None:
-    """The equation-error model of ``record`` (every state a column); None where the library cannot be evaluated
-    on it (a square root of a negative level)."""
+    """:func:`regress` quietly; None where the library cannot be evaluated on ``record`` (a square root of a
+    negative level)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            problem = regression_stats(
-                record, library, derivative="weak", chunk_size=fitting.chunk_size, jit=fitting.jit, states=states
-            )
-            return fit_stats(problem, rvm=fitting.rvm, kinematics=pairs, selection=fitting.rule)
+            return regress(record, library, states, pairs, fitting)
     except (DataError, np.linalg.LinAlgError, FloatingPointError):
         return None
 
 
-def _score(record, z, library, latent, measured, pairs, fitting) -> float | None:
-    """The measured equations' summed log evidence with ``z`` as one more column (an input of the regression: its
-    own equation is not regressed), each by one relevance vector machine (the screen needs no support search:
-    it took 95 % of the time and changed no ranking measured); None where the library cannot be evaluated."""
-    columns = np.column_stack([record.column(n) for n in measured])
+def _score(record, z, library, latent, pairs, fitting) -> float | None:
+    """The summed log evidence of the equations of ``record``'s states (the measured ones) with ``z`` as one more
+    column (an input of the regression: its own equation is not regressed), each by one relevance vector machine
+    (the screen needs no support search: it took 95 % of the time and changed no ranking measured); None where
+    the library cannot be evaluated."""
+    measured = record.state_names
     inputs = np.column_stack([record.inputs, z])
-    seen = Trajectory(record.t, columns, inputs, tuple(measured), (*record.input_names, latent))
+    seen = Trajectory(record.t, record.states, inputs, measured, (*record.input_names, latent))
     positions = {x for x, _ in pairs}
     try:
         with warnings.catch_warnings():

@@ -227,7 +227,7 @@ def _initial_state(
     model: IdentifiedModel, data: Trajectory, observed, how: str, interpolation: str, substeps: int
 ) -> tuple[np.ndarray, int | None]:
     """The start of the re-simulation: the first sample (a member of a kinematic pair the record lacks
-    reconstructed from the others, a latent state where its fit started it, else zero) or, ``how="fit"``, the
+    reconstructed from the others, a latent state at its typical fitted value, else zero) or, ``how="fit"``, the
     state that best explains the first stretch of the ``observed`` channels; and the samples in which a state
     error grows 10^4-fold."""
     acceleration = {o.equation: o.name for o in model.observation if o.kind == "acceleration"}
