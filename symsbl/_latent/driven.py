@@ -179,24 +179,36 @@ def _bisect(f, lo: float, hi: float) -> float:
 
 def trajectories(term: Term, drive: np.ndarray, rates: np.ndarray, z0: np.ndarray, dt: float) -> np.ndarray:
     """``z' = drive - a phi(z)`` for every rate at once by RK4, the drive linear between samples:
-    ``(n_samples, n_rates)``; a candidate that leaves the law's domain turns NaN."""
-    phi, _ = _numeric(term)
-    h = dt / SUBSTEPS
-    z = np.array(z0, dtype=float)
-    out = np.empty((drive.size, rates.size))
-    out[0] = z
+    ``(n_samples, n_rates)``; a candidate that leaves the law's domain turns NaN. One CasADi loop over the samples
+    (``mapaccum``): a Python loop cost 2 s per 10^4 samples and candidate."""
+    step = _stepper(term, np.asarray(rates, dtype=float), dt)
+    run = step.mapaccum("run", drive.size - 1)
+    pairs = np.vstack([drive[:-1], drive[1:]])
     with np.errstate(all="ignore"):
-        for i in range(drive.size - 1):
-            d0, step = drive[i], (drive[i + 1] - drive[i]) / SUBSTEPS
-            for s in range(SUBSTEPS):
-                da, dm, db = d0 + s * step, d0 + (s + 0.5) * step, d0 + (s + 1) * step
-                k1 = da - rates * phi(z)
-                k2 = dm - rates * phi(z + 0.5 * h * k1)
-                k3 = dm - rates * phi(z + 0.5 * h * k2)
-                k4 = db - rates * phi(z + h * k3)
-                z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out[i + 1] = z
-    return out
+        z = np.asarray(run(np.asarray(z0, dtype=float), pairs))
+    return np.vstack([np.asarray(z0, dtype=float)[None, :], z.T])
+
+
+def _stepper(term: Term, rates: np.ndarray, dt: float) -> ca.Function:
+    """One sample of :func:`trajectories`: ``(z, [d_i, d_i+1]) -> z`` by :data:`SUBSTEPS` RK4 steps."""
+    (symbol,) = ca.symvar(term.expr)
+    phi = ca.Function("phi", [symbol], [term.expr])
+    z = ca.SX.sym("z", rates.size)
+    ends = ca.SX.sym("d", 2)
+    h = dt / SUBSTEPS
+
+    def f(w, d):
+        return d - ca.DM(rates) * ca.vertcat(*[phi(w[k]) for k in range(rates.size)])
+
+    w = z
+    for s in range(SUBSTEPS):
+        da, dm, db = (ends[0] + (s + r) / SUBSTEPS * (ends[1] - ends[0]) for r in (0.0, 0.5, 1.0))
+        k1 = f(w, da)
+        k2 = f(w + 0.5 * h * k1, dm)
+        k3 = f(w + 0.5 * h * k2, dm)
+        k4 = f(w + h * k3, db)
+        w = w + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return ca.Function("step", [z, ends], [w])
 
 
 def _rates(term: Term, level: float, dt: float, span: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
