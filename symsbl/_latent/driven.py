@@ -180,17 +180,17 @@ def _bisect(f, lo: float, hi: float) -> float:
 def trajectories(term: Term, drive: np.ndarray, rates: np.ndarray, z0: np.ndarray, dt: float) -> np.ndarray:
     """``z' = drive - a phi(z)`` for every rate at once by RK4, the drive linear between samples:
     ``(n_samples, n_rates)``; a candidate that leaves the law's domain turns NaN. One CasADi loop over the samples
-    (``mapaccum``): a Python loop cost 2 s per 10^4 samples and candidate."""
-    step = _stepper(term, np.asarray(rates, dtype=float), dt)
-    run = step.mapaccum("run", drive.size - 1)
-    pairs = np.vstack([drive[:-1], drive[1:]])
-    with np.errstate(all="ignore"):
-        z = np.asarray(run(np.asarray(z0, dtype=float), pairs))
-    return np.vstack([np.asarray(z0, dtype=float)[None, :], z.T])
+    (``mapaccum``): a Python loop over them costs about 2 s per 10^4 samples and (drive, law)."""
+    start = np.atleast_1d(np.asarray(z0, dtype=float))
+    if drive.size < 2:
+        return start[None, :]
+    run = _stepper(term, np.asarray(rates, dtype=float), dt).mapaccum("run", drive.size - 1)
+    ends = np.vstack([drive[:-1], drive[1:]])
+    return np.vstack([start[None, :], np.asarray(run(start, ends)).T])
 
 
 def _stepper(term: Term, rates: np.ndarray, dt: float) -> ca.Function:
-    """One sample of :func:`trajectories`: ``(z, [d_i, d_i+1]) -> z`` by :data:`SUBSTEPS` RK4 steps."""
+    """One sample of :func:`trajectories`: ``(z, [d[i], d[i+1]]) -> z`` by :data:`SUBSTEPS` RK4 steps."""
     (symbol,) = ca.symvar(term.expr)
     phi = ca.Function("phi", [symbol], [term.expr])
     z = ca.SX.sym("z", rates.size)
