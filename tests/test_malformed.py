@@ -932,6 +932,35 @@ def test_python_api_refuses_what_it_cannot_do():
         symsbl.identify(huge, symsbl.polynomial([x1, x2], 1))
 
 
+def test_a_term_undefined_on_some_samples_is_named_with_the_values_there(tmp_path, capsys):
+    """A level that noise takes below zero under a square root: the term and the sample's values, in Python and
+    on the command line (exit 2, the file unchanged)."""
+    x, u = symsbl.symbols("x u")
+    t = symsbl.time_grid(20.0, 400)
+    level = 0.6 + 0.5 * np.sin(0.7 * t)
+    level[1234] = -0.0125
+    flow = 1.0 + 0.3 * np.cos(1.3 * t)
+    record = symsbl.Trajectory(t, level[:, None], flow[:, None], ("x",), ("u",))
+    library = symsbl.polynomial([x], 1) + symsbl.elementwise([x], ["sqrt"]) + symsbl.inputs([u])
+    line = (
+        "term 'sqrt(x)': expected a term defined on every sample, received nan where x = -0.0125, u = "
+        f"{flow[1234]:.6g}; leave the term out of the library, or clean the record where it is undefined"
+    )
+    with pytest.raises(symsbl.DataError, match=exactly(line)):
+        symsbl.identify(record, library)
+    path = tmp_path / "level.csv"
+    np.savetxt(path, np.column_stack([t, level, flow]), delimiter=",", header="t,x,u", comments="")
+    (tmp_path / "lib.py").write_text(
+        "import symsbl\nx, u = symsbl.symbols('x u')\n"
+        "library = symsbl.polynomial([x], 1) + symsbl.elementwise([x], ['sqrt']) + symsbl.inputs([u])\n"
+    )
+    before = hashlib.md5(path.read_bytes()).hexdigest()
+    args = ["identify", str(path), "--states", "x", "--inputs", "u", "--library", str(tmp_path / "lib.py")]
+    assert main([*args, "--quiet"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [f"symsbl identify: error: {line}"]
+    assert hashlib.md5(path.read_bytes()).hexdigest() == before
+
+
 @pytest.mark.slow
 def test_ctrl_c_is_one_line_and_exit_130(tmp_path):
     # as from an interactive shell: SIGINT at its default, whatever the test process inherited (a program started

@@ -241,7 +241,34 @@ def block_stats(
             if bar is not None:
                 bar.update(b - a)
 
-    return GramStats.from_chunks(_regroup(slabs(), chunk_size))
+    try:
+        return GramStats.from_chunks(_regroup(slabs(), chunk_size))
+    except DataError:
+        _undefined_term(Z, evaluator, chunk_size)  # the Gram's check names no term: find it where it failed
+        raise
+
+
+def _undefined_term(Z: np.ndarray, evaluator: Evaluator, chunk_size: int) -> None:
+    """Refuse, by name, the first library term that is not finite on the samples ``Z`` (a square root of a level
+    that noise takes below zero); return where every term is finite."""
+    names = evaluator.library.variable_names
+    for a in range(0, len(Z), chunk_size):
+        with np.errstate(all="ignore"):
+            D = evaluator.evaluate(Z[a : a + chunk_size])
+        bad = ~np.isfinite(D)
+        if bad.any():
+            j = int(np.flatnonzero(bad.any(axis=0))[0])
+            i = int(np.flatnonzero(bad[:, j])[0])
+            where = ", ".join(f"{n} = {v:.6g}" for n, v in zip(names, Z[a + i]))
+            raise DataError(
+                expected(
+                    f"term {evaluator.library.names[j]!r}",
+                    "a term defined on every sample",
+                    f"{D[i, j]} where {where}",
+                    "leave the term out of the library, or clean the record where it is undefined",
+                    raw=True,
+                )
+            )
 
 
 def regression_stats(
