@@ -408,7 +408,21 @@ def _diagnosis(model) -> list[str]:
 
 
 def _latent_summary(info: dict) -> str:
-    """What the latent-state pipeline found, in two lines."""
+    """What the latent-state pipeline found: its verdict, and the branches the record does not tell from it."""
+    found = _latent_verdict(info)
+    rivals = info.get("rivals")  # absent from files written before the rivals were recorded
+    if not rivals:
+        return found
+    within = ", ".join(f"{k} ({d:+.3g} nats)" for k, d in rivals.items())
+    return (
+        f"{found}\nlatent state {info['latent']}: within the verdict's margin of {info['margin']:.3g} nats of "
+        f"{info['chosen']}, another structure fits as well: {within}; the record does not tell them apart "
+        "(one input-output map realized twice, or too little excitation)"
+    )
+
+
+def _latent_verdict(info: dict) -> str:
+    """The verdict and each branch's log evidence, in one line."""
     branches = ", ".join(f"{k} {v['log_evidence']:.6g}" for k, v in info["branches"].items())
     if info.get("start") == "driven":
         law = info["screened_law"]

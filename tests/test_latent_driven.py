@@ -160,6 +160,57 @@ def test_the_verdict_takes_the_best_start_by_the_penalty_and_names_ties_by_the_s
     assert _driven_verdict(scores, leaders, penalty=25.0) == "z' = u - a sqrt(z)"
 
 
+def test_rivals_are_other_structures_within_the_margin():
+    """By hand: a branch that reached the chosen structure from another start (its terms in another order) is the
+    same model; one of other terms inside the margin, above or below, is a rival; one outside it is not."""
+    from symsbl._latent.branches import rivals
+
+    def branch(evidence, z_terms):
+        return {"log_evidence": evidence, "terms": {"v": ["x", "v", "z", "F"], "z": z_terms}}
+
+    branches = {
+        "z' = v - a z": branch(1000.0, ["v", "z"]),
+        "z' = v - a sqrt(z)": branch(999.0, ["z", "v"]),  # the same model from another start
+        "z' = x - a z": branch(996.5, ["x", "z"]),
+        "z' = F - a z": branch(1003.0, ["F", "z"]),
+        "z' = x**2 - a z": branch(990.0, ["x**2", "z"]),
+        "nothing hidden": {"log_evidence": 900.0, "terms": {"v": ["x", "v", "F"], "z": []}},
+    }
+    assert rivals(branches, "z' = v - a z", margin=5.0) == {"z' = x - a z": -3.5, "z' = F - a z": 3.0}
+    assert rivals(branches, "z' = v - a z", margin=2.0) == {}
+    assert rivals(branches, "nothing hidden", margin=100.0) == {
+        "z' = v - a z": 100.0,
+        "z' = v - a sqrt(z)": 99.0,
+        "z' = x - a z": 96.5,
+        "z' = x**2 - a z": 90.0,
+    }
+
+
+def test_the_command_line_names_the_rivals_in_a_second_line():
+    """A file written before the rivals were recorded prints the verdict alone."""
+    from symsbl._cli import _latent_summary
+
+    law = {"drive": "v", "rate": 2.0, "law": "z", "tau": 0.5}
+    info = {
+        "verdict": "hidden",
+        "latent": "z",
+        "start": "driven",
+        "screened_law": law,
+        "n_candidates": 40,
+        "branches": {"nothing hidden": {"log_evidence": 9.0}, "z' = v - a z": {"log_evidence": 20.0}},
+    }
+    assert "\n" not in _latent_summary(info)
+    info.update(chosen="z' = v - a z", margin=7.0, rivals={})
+    assert "\n" not in _latent_summary(info)
+    info["rivals"] = {"z' = x - a z": -1.25}
+    verdict, rival = _latent_summary(info).split("\n")
+    assert verdict.startswith("latent state z: hidden; log evidence by branch: nothing hidden 9, z' = v - a z 20")
+    assert rival.startswith(
+        "latent state z: within the verdict's margin of 7 nats of z' = v - a z, another structure fits as well: "
+        "z' = x - a z (-1.25 nats); the record does not tell them apart"
+    )
+
+
 def test_a_latent_state_starts_where_its_fit_started_it():
     """The exact model of two tanks, re-simulated on a held-out record: from its fitted latent level it is at
     the noise floor; from zero (a level under a square root has no derivative there) the initial-state fit
@@ -295,3 +346,30 @@ def test_the_middle_of_three_tanks_driven_by_the_outflow_above():
     assert model.metadata["latent"]["screened_law"]["drive"] == "sqrt(x1)"
     check = symsbl.validate_model(model, levels(1, 0.0))
     assert max(check.nrmse.values()) < 0.002
+
+
+@pytest.mark.slow
+def test_a_maxwell_element_realized_by_two_drives_names_the_other_as_a_rival():
+    """``x'' + 0.2 x' + 4 x + z = F``, ``z' = 2 x' - 2 z`` (x and v measured, 0.5 % noise): its input-output map
+    ``(s + 2) / (s^3 + 2.2 s^2 + 6.4 s + 8)`` is realized as well by ``z' = x - 2 z``, ``v' = F - 6 x - 0.2 v + 4 z``
+    (by hand), a structure of other terms. Both are refined; the verdict takes one and names the other."""
+    x, v, z, f = symsbl.symbols("x v z F")
+    maxwell = symsbl.OdeSystem(states=(x, v, z), inputs=(f,), rhs=(v, f - 0.2 * v - 4 * x - z, 2 * v - 2 * z))
+    fs, span = 50.0, 200.0
+    t = np.arange(int(span * fs)) / fs
+    rng = np.random.default_rng(0)
+    tones = sum(np.cos(2 * np.pi * k / span * t + rng.uniform(0, 2 * np.pi)) for k in range(1, int(2 * span)))
+    force = tones / tones.std()
+    clean = symsbl.simulate(maxwell, t, inputs=force, x0=[0, 0, 0])
+    measured = np.column_stack([clean.column("x"), clean.column("v")])
+    measured += 0.005 * measured.std(0) * np.random.default_rng(1).standard_normal(measured.shape)
+    record = symsbl.Trajectory(t, measured, force[:, None], ("x", "v"), ("F",))
+    model = symsbl.identify(record, symsbl.polynomial([x, v, z], 3) + symsbl.inputs([f]), states=("x", "v", "z"))
+    info = model.metadata["latent"]
+    assert info["verdict"] == "hidden"
+    realizations = {"z' = v - a z": ["v", "z"], "z' = x - a z": ["x", "z"]}
+    assert {info["chosen"], *info["rivals"]} == set(realizations)
+    for name, law in realizations.items():
+        terms = info["branches"][name]["terms"]
+        assert sorted(terms["z"]) == sorted(law) and sorted(terms["v"]) == sorted(["x", "v", "z", "F"])
+    assert all(abs(gap) <= info["margin"] for gap in info["rivals"].values())

@@ -50,7 +50,7 @@ from .._refine import RefineOptions, refine
 from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
 from . import driven
-from .branches import Branches, Screened, unused
+from .branches import Branches, Screened, rivals, unused
 from .hosts import drives, host_of, same_cut
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
@@ -214,6 +214,8 @@ def identify_latent(
     final = builder.with_latent(chosen, keep=(verdict == "hidden"))
     summary = _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
     summary.update(records=len(data), screened_on=lead, host=y, misfit=misfit)
+    margin = fitting.rule.nats_per_term(sum(d.n_samples for d in data), stages.n_candidates)
+    summary.update(_rivals(summary["branches"], best, margin))
     if drive is not None:
         summary.update(drive=drive.kind, driven=drive.driven)
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
@@ -251,9 +253,8 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
     fits, caught, failed = _refine_branches(starts, data, libraries, options, rule, clock)
     scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
     structures = len({(c.drive.name, c.law.name) for c in found})  # the rates are one structure's values
-    best = _driven_verdict(
-        scores, leaders, fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), structures)
-    )
+    margin = fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), structures)
+    best = _driven_verdict(scores, leaders, margin)
     winner = best or "nothing hidden"
     for w in caught[winner]:
         warnings.warn(w.message, w.category, stacklevel=3)
@@ -267,16 +268,27 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
         "screened_law": (leaders[best] if best else found[0]).to_json(),
         "candidates": [c.to_json() for c in leaders.values()],
         "n_candidates": len(found),
-        "branches": {
-            k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
-            for k, f in fits.items()
-        },
+        "branches": _branches(fits, scores),
         "failed": {**skipped, **failed},
         "records": len(trajectories),
         "screened_on": lead,
         "seconds": clock.times,
     }
+    summary.update(_rivals(summary["branches"], winner, margin))
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
+
+
+def _branches(fits: dict, scores: dict) -> dict:
+    """Each refined branch's log evidence and terms by equation, for ``metadata["latent"]["branches"]``."""
+    return {
+        k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
+        for k, f in fits.items()
+    }
+
+
+def _rivals(branches: dict, chosen: str, margin: float) -> dict:
+    """The ``chosen`` branch, the verdict's ``margin`` and the branches within it (see :func:`.branches.rivals`)."""
+    return {"chosen": chosen, "margin": margin, "rivals": rivals(branches, chosen, margin)}
 
 
 def _driven_starts(trajectories, library: Library, names, pairs, z: str, found, lead: int, fitting: Fitting):
@@ -401,10 +413,7 @@ def _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
         "split_skeleton": stages.skeleton.to_json(),
         "screened_law": [stages.law_terms[i].name for i in stages.law.active_],
         "screened_force": [stages.force_terms[i - 3].name for i in stages.memory.active_ if i >= 3],
-        "branches": {
-            k: {"log_evidence": scores[k], "terms": {eq.lhs: eq.names for eq in f.equations if not eq.fixed}}
-            for k, f in fits.items()
-        },
+        "branches": _branches(fits, scores),
         "failed": failed,
         "seconds": clock.times,
     }

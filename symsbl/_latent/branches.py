@@ -33,7 +33,7 @@ from .hosts import Drive
 from .periodic import Spectra
 from .skeleton import Skeleton
 
-__all__ = ["Screened", "Branches", "unused"]
+__all__ = ["Screened", "Branches", "unused", "rivals"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -167,6 +167,38 @@ class Branches:
         if law and not self.integrable(law) and scores["hidden"] > scores[visible] + penalty:
             return "hidden", "hidden", scores
         return f"nothing hidden ({'memoryless force' if visible == 'memoryless' else 'linear'})", visible, scores
+
+
+def rivals(branches: dict, chosen: str, margin: float) -> dict:
+    """The refined branches of another structure whose log evidence lies within ``margin`` nats of the chosen
+    one's, by name: their log evidence minus the chosen one's.
+
+    The verdict needs a hidden branch to win by ``margin``; within it the record does not tell the two apart
+    (measured: a Maxwell element's hidden state driven by the force or by the velocity, one transfer function
+    realized twice, a few nats apart on 160000 samples). Branches that reached the chosen structure from other
+    starts are the same model, not rivals.
+
+    Parameters
+    ----------
+    branches : dict
+        ``metadata["latent"]["branches"]``: per branch, its ``log_evidence`` and its ``terms`` by equation.
+    chosen : str
+        The branch the verdict took.
+    margin : float
+        The verdict's margin in nats (the per-term penalty).
+    """
+    best = branches[chosen]
+
+    def structure(branch: dict) -> dict:
+        return {lhs: sorted(names) for lhs, names in branch["terms"].items() if names}
+
+    return {
+        name: b["log_evidence"] - best["log_evidence"]
+        for name, b in branches.items()
+        if name != chosen
+        and abs(b["log_evidence"] - best["log_evidence"]) <= margin
+        and structure(b) != structure(best)
+    }
 
 
 def unused(model: IdentifiedModel, states, z: str) -> IdentifiedModel:
