@@ -415,9 +415,8 @@ def _latent_summary(info: dict) -> str:
         return found
     within = ", ".join(f"{k} ({d:+.3g} nats)" for k, d in rivals.items())
     return (
-        f"{found}\nlatent state {info['latent']}: within the verdict's margin of {info['margin']:.3g} nats of "
-        f"{info['chosen']}, another structure fits as well: {within}; the record does not tell them apart "
-        "(one input-output map realized twice, or too little excitation)"
+        f"{found}\nlatent state {info['latent']}: within the verdict's margin ({info['margin']:.3g} nats) of the "
+        f"chosen {info['chosen']}: {within}; the record does not tell them apart"
     )
 
 

@@ -284,6 +284,7 @@ DOUBTS_PRINTED = (
     "the chosen structure leaves",
     "indistinguishable here from",
     "latent state ",
+    "the record does not tell them apart",
     "is not a column of DATA: it is identified as a latent state",
     "where output error is biased; the equation-error",
     "ambiguous between",

@@ -284,6 +284,12 @@ def test_hidden_friction_on_one_mass_of_a_chain():
     assert info["verdict"] == "hidden" and info["host"] == "y1"
     assert info["misfit"]["y1"] > 2 and 0.7 < info["misfit"]["y2"] < 1.4  # the second mass: linear, to its noise
     assert info["drive"] == "free" and not info["driven"]
+    lead = max(info["branches"].values(), key=lambda b: b["log_evidence"])
+    assert info["chosen"] == "hidden" and info["branches"]["hidden"] is lead
+    # the margin the verdict asked the hidden branch to win by, and no rival within it
+    assert info["margin"] > 0 and info["rivals"] == {}
+    others = [b["log_evidence"] for b in info["branches"].values() if b is not lead]
+    assert all(lead["log_evidence"] - e > info["margin"] for e in others)
     from symsbl._cli import _latent_summary
 
     assert _latent_summary(info).startswith("latent state z on y1 (each position's linear misfit over its noise")

@@ -176,13 +176,24 @@ def test_rivals_are_other_structures_within_the_margin():
         "z' = x**2 - a z": branch(990.0, ["x**2", "z"]),
         "nothing hidden": {"log_evidence": 900.0, "terms": {"v": ["x", "v", "F"], "z": []}},
     }
-    assert rivals(branches, "z' = v - a z", margin=5.0) == {"z' = x - a z": -3.5, "z' = F - a z": 3.0}
-    assert rivals(branches, "z' = v - a z", margin=2.0) == {}
-    assert rivals(branches, "nothing hidden", margin=100.0) == {
+    assert rivals(branches, "z' = v - a z", 5.0, "z") == {"z' = x - a z": -3.5, "z' = F - a z": 3.0}
+    assert rivals(branches, "z' = v - a z", 2.0, "z") == {}
+    assert rivals(branches, "nothing hidden", 100.0, "z") == {
         "z' = v - a z": 100.0,
         "z' = v - a sqrt(z)": 99.0,
         "z' = x - a z": 96.5,
         "z' = x**2 - a z": 90.0,
+    }
+    # a law whose state no other equation uses is idle: that branch is "nothing hidden" (and a name that only
+    # contains the state's, such as zeta, does not use it)
+    branches["idle"] = {"log_evidence": 901.0, "terms": {"v": ["x", "v", "F", "zeta"], "z": ["v", "z"]}}
+    branches["nothing hidden"]["terms"]["v"].append("zeta")
+    assert "idle" not in rivals(branches, "nothing hidden", 100.0, "z")
+    assert rivals(branches, "idle", 100.0, "z") == {
+        "z' = v - a z": 99.0,
+        "z' = v - a sqrt(z)": 98.0,
+        "z' = x - a z": 95.5,
+        "z' = x**2 - a z": 89.0,
     }
 
 
@@ -205,9 +216,9 @@ def test_the_command_line_names_the_rivals_in_a_second_line():
     info["rivals"] = {"z' = x - a z": -1.25}
     verdict, rival = _latent_summary(info).split("\n")
     assert verdict.startswith("latent state z: hidden; log evidence by branch: nothing hidden 9, z' = v - a z 20")
-    assert rival.startswith(
-        "latent state z: within the verdict's margin of 7 nats of z' = v - a z, another structure fits as well: "
-        "z' = x - a z (-1.25 nats); the record does not tell them apart"
+    assert rival == (
+        "latent state z: within the verdict's margin (7 nats) of the chosen z' = v - a z: z' = x - a z (-1.25 nats); "
+        "the record does not tell them apart"
     )
 
 

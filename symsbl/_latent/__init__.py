@@ -50,7 +50,7 @@ from .._refine import RefineOptions, refine
 from .._regression.rvm import RVM
 from .._symbolic.library import Library, Term
 from . import driven
-from .branches import Branches, Screened, rivals, unused
+from .branches import Branches, Screened, margin, rivals, unused
 from .hosts import drives, host_of, same_cut
 from .law import WeakForm, evaluate, homogeneous_terms, screen
 from .periodic import Periods, Spectra, split_periods, whole_record
@@ -214,8 +214,7 @@ def identify_latent(
     final = builder.with_latent(chosen, keep=(verdict == "hidden"))
     summary = _summary(verdict, z, periods, periodic, stages, fits, scores, failed, clock)
     summary.update(records=len(data), screened_on=lead, host=y, misfit=misfit)
-    margin = fitting.rule.nats_per_term(sum(d.n_samples for d in data), stages.n_candidates)
-    summary.update(_rivals(summary["branches"], best, margin))
+    summary.update(_rivals(summary, best, margin(sum(d.n_samples for d in data), stages.n_candidates, fitting.rule)))
     if drive is not None:
         summary.update(drive=drive.kind, driven=drive.driven)
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
@@ -253,8 +252,8 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
     fits, caught, failed = _refine_branches(starts, data, libraries, options, rule, clock)
     scores = {k: float(f.metadata["refine"]["log_evidence"]) for k, f in fits.items()}
     structures = len({(c.drive.name, c.law.name) for c in found})  # the rates are one structure's values
-    margin = fitting.rule.nats_per_term(sum(d.n_samples for d in trajectories), structures)
-    best = _driven_verdict(scores, leaders, margin)
+    nats = margin(sum(d.n_samples for d in trajectories), structures, fitting.rule)
+    best = _driven_verdict(scores, leaders, nats)
     winner = best or "nothing hidden"
     for w in caught[winner]:
         warnings.warn(w.message, w.category, stacklevel=3)
@@ -274,7 +273,7 @@ def _identify_driven(trajectories, library: Library, names, pairs, z: str, fitti
         "screened_on": lead,
         "seconds": clock.times,
     }
-    summary.update(_rivals(summary["branches"], winner, margin))
+    summary.update(_rivals(summary, winner, nats))
     return dataclasses.replace(final, metadata=dict(final.metadata, latent=summary))
 
 
@@ -286,9 +285,10 @@ def _branches(fits: dict, scores: dict) -> dict:
     }
 
 
-def _rivals(branches: dict, chosen: str, margin: float) -> dict:
-    """The ``chosen`` branch, the verdict's ``margin`` and the branches within it (see :func:`.branches.rivals`)."""
-    return {"chosen": chosen, "margin": margin, "rivals": rivals(branches, chosen, margin)}
+def _rivals(summary: dict, chosen: str, nats: float) -> dict:
+    """The ``chosen`` branch, the verdict's margin ``nats`` and the branches within it (see
+    :func:`.branches.rivals`)."""
+    return {"chosen": chosen, "margin": nats, "rivals": rivals(summary["branches"], chosen, nats, summary["latent"])}
 
 
 def _driven_starts(trajectories, library: Library, names, pairs, z: str, found, lead: int, fitting: Fitting):
