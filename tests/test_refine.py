@@ -11,6 +11,7 @@ import warnings
 import casadi as ca
 import numpy as np
 import pytest
+from helpers import chain
 
 import symsbl
 from symsbl import Multisine, OdeSystem, Trajectory, identify, refine, simulate, symbols, time_grid
@@ -1091,21 +1092,9 @@ def test_a_chain_of_five_masses_finds_every_weak_dashpot():
     ``bench/bench_mdof.py``), so the output error tries the terms of one variable each equation lacks nearby, and the
     free-run simulation keeps the true ones. Simulated by CVODES."""
     n = 5
-    m = np.array([1.2, 1.0, 1.4, 1.1, 1.3])
-    k = np.array([4.0e3, 3.0e3, 2.5e3, 3.5e3, 2.0e3])  # spring i ties mass i to mass i - 1 (the ground for i = 1)
-    c = 2 * 0.005 * np.sqrt(k * m)
-    kg, kc = 2.4e6, 2.4e6
-    x = list(symbols(" ".join(f"x{i + 1}" for i in range(n))))
-    v = list(symbols(" ".join(f"v{i + 1}" for i in range(n))))
+    masses, springs = [1.2, 1.0, 1.4, 1.1, 1.3], [4.0e3, 3.0e3, 2.5e3, 3.5e3, 2.0e3]
+    system, x, v = chain(masses, springs, zeta=0.005, kg=2.4e6, kc=2.4e6)
     (F,) = symbols("F")
-    stretch = [x[0]] + [x[i] - x[i - 1] for i in range(1, n)]
-    rate = [v[0]] + [v[i] - v[i - 1] for i in range(1, n)]
-    force = [k[i] * stretch[i] + c[i] * rate[i] for i in range(n)]
-    force[0] += kg * x[0] ** 3
-    force[-1] += kc * stretch[-1] ** 3
-    accel = [(force[i + 1] if i + 1 < n else F) - force[i] for i in range(n)]
-    accel = [a / m[i] for i, a in enumerate(accel)]
-    system = OdeSystem(tuple(x + v), (F,), tuple(v + accel), name="chain of five")
     signal = Multisine(rms=20.0, f_min=1.0, f_max=30.0, seed=3, period=4.0)
     record = simulate(system, time_grid(4.0, 1024), inputs=signal, method="cvodes").with_noise(0.005, seed=0)
     library = symsbl.polynomial(x + v, 3) + symsbl.inputs([F])

@@ -28,6 +28,7 @@ from .._data.trajectory import Trajectory, check_magnitude
 from .._derivatives.registry import Differentiator, get_differentiator
 from .._symbolic.evaluator import Evaluator
 from .._symbolic.library import Library
+from .band import high_passed, lower_edge
 from .gram import GramStats
 
 __all__ = [
@@ -198,6 +199,7 @@ def block_stats(
     bar: Progress | None = None,
     measured: np.ndarray | None = None,
     replaced: tuple = (),
+    band: float = 0.0,
 ) -> GramStats:
     """Statistics of rows ``r0:r1`` of a block of samples, evaluating about ``chunk_size`` samples at a time.
 
@@ -223,6 +225,8 @@ def block_stats(
         (their targets replaced), then the algebraic outputs (targets appended).
     replaced : tuple of int
         The states whose targets the first ``len(replaced)`` columns of ``measured`` replace.
+    band : float
+        Cut-off (Hz) of the high-pass on every column of the rows (see :mod:`.band`); 0: none.
     """
     Y = diff.targets(np.arange(len(X)) * h, X)
     if measured is not None and measured.shape[1]:
@@ -242,7 +246,9 @@ def block_stats(
                 bar.update(b - a)
 
     try:
-        return GramStats.from_chunks(_regroup(slabs(), chunk_size))
+        return GramStats.from_chunks(
+            high_passed(_regroup(slabs(), chunk_size), band, 1.0 / (h * (stencil.stride or 1)))
+        )
     except DataError:
         _undefined_term(Z, evaluator, chunk_size)  # the Gram's check names no term: find it where it failed
         raise
@@ -339,8 +345,10 @@ def regression_stats(
     enough_rows(n_rows, len(library), f"{len(trajectories)} record(s) with {type(diff).__name__}")
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     check_representable(trajectories, columns, library, evaluator, n_states=n_states)
+    # rows in the band the measured derivatives carry, where states integrated from them hold (see .band)
+    band = lower_edge(longest.t, [longest.column(derivatives[n]) for n in names if n in derivatives])
     with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
-        total = _accumulate(trajectories, columns, n_states, diff, evaluator, chunk_size, bar, replaced)
+        total = _accumulate(trajectories, columns, n_states, diff, evaluator, chunk_size, bar, replaced, band)
     return RegressionStats(
         total,
         library,
@@ -374,7 +382,15 @@ def _target_columns(first: Trajectory, states, derivatives: dict, outputs: tuple
 
 
 def _accumulate(
-    trajectories, columns, n_states: int, diff: Differentiator, evaluator: Evaluator, chunk_size: int, bar, replaced
+    trajectories,
+    columns,
+    n_states: int,
+    diff: Differentiator,
+    evaluator: Evaluator,
+    chunk_size: int,
+    bar,
+    replaced,
+    band: float = 0.0,
 ) -> GramStats:
     """The statistics of every record's rows, summed."""
     total = None
@@ -395,6 +411,7 @@ def _accumulate(
             bar,
             measured=traj.states[:, n_states:],
             replaced=replaced,
+            band=band,
         )
         total = part if total is None else total + part
     assert total is not None  # enough_rows() refused records without a row
