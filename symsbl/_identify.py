@@ -31,6 +31,7 @@ from ._refine import refine, refine_or_keep
 from ._refine.diagnostics import noisy_input_names
 from ._refine.inputnoise import AGREEMENT, DRAWS, disagreement, input_noise_covariance, widened
 from ._refine.options import RefineOptions, as_options, requested
+from ._regression.band import lower_edge
 from ._regression.fit import fit_stats, selection_rule
 from ._regression.ladder import as_ladder, climb
 from ._regression.path import validated_equations
@@ -171,6 +172,10 @@ def identify(
     completed, unmeasured = complete_states(
         trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
     )
+    # rows in the band of the accelerations a position or velocity was integrated from, where the integral holds
+    longest = max(trajectories, key=lambda r: r.n_samples)
+    integrated = [a for x, v in pairs if v in present and {x, v} & set(unmeasured) for a in [present[v]]]
+    band = lower_edge(longest.t, [longest.column(a) for a in integrated])
 
     def fit(rung: Library, like=None):
         problem = regression_stats(
@@ -182,6 +187,7 @@ def identify(
             states=names,
             derivatives=present,
             outputs=algebraic,
+            band=band,
         )
         return problem, fit_stats(problem, rvm=rvm, kinematics=pairs, selection=rule)
 

@@ -135,6 +135,21 @@ def test_rows_high_passed_alike_keep_every_linear_identity_across_slabs():
         assert next(high_passed(iter([(D, D @ xi)]), off, rate))[0] is D
 
 
+def test_the_rows_band_is_where_a_state_was_integrated_and_other_records_reuse_it():
+    """``identify`` high-passes the rows only where it integrated a position or a velocity (with both measured, a
+    constant force stays identifiable); the statistics carry their band to the records that reuse their targets
+    (the equation error's folds), which would find another edge on a shorter record."""
+    from symsbl._regression.band import lower_edge
+
+    record, _ = ro.accelerometer_record(ro.HARDENING, 0, seconds=2.0, keep=("x", "v", "a"))
+    edge = lower_edge(record.t, [record.column("a")])
+    assert 2.0 <= edge < 30.0  # within the multisine's band
+    problem = symsbl.regression_stats(record, _library(), states=["x", "v"], derivatives={"v": "a"}, band=edge)
+    again = symsbl.regression_stats(record.slice(0, 500), _library(), **problem.targets)
+    assert problem.band == again.band == edge
+    assert symsbl.regression_stats(record, _library(), states=["x", "v"], derivatives={"v": "a"}).band == 0.0
+
+
 # -- accelerometers ----------------------------------------------------------------------------------
 def test_an_accelerometer_alone_identifies_a_hardening_oscillator():
     """m 0.7, c 1.1, k 3e3, k3 4e7 (the cubic force 1.4x the linear one at the peak), a 2-30 Hz multisine, 1 kHz,

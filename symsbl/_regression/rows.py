@@ -28,7 +28,7 @@ from .._data.trajectory import Trajectory, check_magnitude
 from .._derivatives.registry import Differentiator, get_differentiator
 from .._symbolic.evaluator import Evaluator
 from .._symbolic.library import Library
-from .band import high_passed, lower_edge
+from .band import high_passed
 from .gram import GramStats
 
 __all__ = [
@@ -61,6 +61,8 @@ class RegressionStats:
         Algebraic outputs, regressed as they are on the library: their targets follow the states'.
     derivatives : tuple of (str, str)
         ``(state, column)``: states whose derivative a column measures (an accelerometer), their target.
+    band : float
+        Cut-off (Hz) of the high-pass on the rows (see :mod:`.band`); 0: none.
     """
 
     stats: GramStats
@@ -70,6 +72,7 @@ class RegressionStats:
     derivative: Differentiator
     output_names: tuple[str, ...] = ()
     derivatives: tuple = ()
+    band: float = 0.0
 
     @property
     def target_names(self) -> tuple[str, ...]:
@@ -79,7 +82,12 @@ class RegressionStats:
     @property
     def targets(self) -> dict:
         """The keywords of :func:`regression_stats` that give the same targets on other records."""
-        return {"states": self.state_names, "derivatives": dict(self.derivatives), "outputs": self.output_names}
+        return {
+            "states": self.state_names,
+            "derivatives": dict(self.derivatives),
+            "outputs": self.output_names,
+            "band": self.band,
+        }
 
 
 def as_trajectories(data) -> list[Trajectory]:
@@ -287,6 +295,7 @@ def regression_stats(
     states=None,
     derivatives=None,
     outputs=(),
+    band: float = 0.0,
 ) -> RegressionStats:
     """Accumulate the regression statistics of ``data`` over ``library`` chunk by chunk.
 
@@ -310,6 +319,10 @@ def regression_stats(
     outputs : sequence of str
         Columns regressed as they are on the library (algebraic outputs: a force cell); their targets follow
         the states'.
+    band : float
+        Cut-off (Hz) of a high-pass on every column of the rows, both sides alike; 0 (default): none. ``identify``
+        passes the lower band edge of the accelerations a position or velocity was integrated from (see
+        :mod:`.band`).
 
     Examples
     --------
@@ -345,8 +358,6 @@ def regression_stats(
     enough_rows(n_rows, len(library), f"{len(trajectories)} record(s) with {type(diff).__name__}")
     evaluator = Evaluator(library, chunk_size=chunk_size, jit=jit)
     check_representable(trajectories, columns, library, evaluator, n_states=n_states)
-    # rows in the band the measured derivatives carry, where states integrated from them hold (see .band)
-    band = lower_edge(longest.t, [longest.column(derivatives[n]) for n in names if n in derivatives])
     with Progress(f"dictionary ({len(library)} terms) and Gram", total=n_rows, unit="rows") as bar:
         total = _accumulate(trajectories, columns, n_states, diff, evaluator, chunk_size, bar, replaced, band)
     return RegressionStats(
@@ -357,6 +368,7 @@ def regression_stats(
         diff,
         outputs,
         tuple((n, derivatives[n]) for n in names if n in derivatives),
+        band,
     )
 
 
