@@ -172,10 +172,7 @@ def identify(
     completed, unmeasured = complete_states(
         trajectories, names, pairs, present, keep=tuple(present.values()) + algebraic
     )
-    # rows in the band of the accelerations a position or velocity was integrated from, where the integral holds
-    longest = max(trajectories, key=lambda r: r.n_samples)
-    integrated = [a for x, v in pairs if v in present and {x, v} & set(unmeasured) for a in [present[v]]]
-    band = lower_edge(longest.t, [longest.column(a) for a in integrated])
+    band = _integrated_band(trajectories, pairs, present, unmeasured)
 
     def fit(rung: Library, like=None):
         problem = regression_stats(
@@ -211,6 +208,14 @@ def identify(
     refined = refine_or_keep(model, trajectories, library=problem.library, options=options, selection=rule)
     estimated = _estimated(trajectories, completed, unmeasured, pairs, columns, present)
     return _reported(model, refined, completed, problem, rvm, rule, estimated=estimated, fitted=(trajectories, options))
+
+
+def _integrated_band(trajectories, pairs, present: dict, unmeasured) -> float:
+    """The lower band edge (Hz) of the accelerations a position or velocity was integrated from, on the longest
+    record: the equation error's rows are fitted above it, where the integrals hold; 0.0 when none was."""
+    longest = max(trajectories, key=lambda r: r.n_samples)
+    integrated = [present[v] for x, v in pairs if v in present and {x, v} & set(unmeasured)]
+    return lower_edge(longest.t, [longest.column(a) for a in integrated])
 
 
 #: The largest relative noise of a velocity estimated from its position for the equation error on it to be
