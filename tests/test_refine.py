@@ -345,7 +345,7 @@ def test_the_pass_gives_the_same_normal_equations_in_calls_of_any_length():
     records = passes.records
     step, _ = sensitivity_step(engine.param, engine.param.observe(records.outputs), records.n_outputs, engine.substeps)
     passes.chunk = 64
-    passes._sens = _chunk(step, False, passes.records.n_total, 64)
+    passes._sens, _ = _chunk(step, False, passes.records.n_total, 64)
     passes._sens_buffer = passes._sens.buffer()
     short = passes.sensitivities(engine.param.theta0, X0, passes.segments(starts), w)
     for a, b in zip(dataclasses.astuple(whole), dataclasses.astuple(short)):

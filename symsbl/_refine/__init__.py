@@ -43,6 +43,7 @@ from .options import MAX_SAMPLES, RefineOptions, as_options
 from .path import choose_structure
 from .problem import check_records, window_plan
 from .result import to_model
+from .reuse import shared_passes
 from .rows import design_rows, state_guess
 from .screen import screen_terms
 from .selection import _every_term_clears
@@ -60,6 +61,7 @@ def _windows(records: list[Trajectory], max_samples: int) -> tuple[list[Trajecto
 
 
 @one_blas_thread()  # many small products and least squares: on busy cores, threads cost more than they bring
+@shared_passes()  # the structures fitted in one refinement share compiled passes
 def refine(
     model: IdentifiedModel,
     data,

@@ -20,6 +20,7 @@ from .._derivatives.weakform import WeakForm
 from .._model import IdentifiedModel
 from .noise import innovations
 from .problem import Parameterisation, Records, choose_substeps, resolve_outputs
+from .reuse import passes_of
 from .rows import design_rows, simulated_guess, state_guess
 from .sensitivity import FIT_SOURCE, Passes
 from .smoothing import sign_jumps, smooth_model, smoothing_widths, width_of
@@ -94,7 +95,7 @@ class Engine:
                 substeps = max(substeps, choose_substeps(self.param, parts, rows, self.param.theta0, rate))
         self.substeps = int(substeps)
         layout = Records.of(fitted, records, self.outputs, settings.interpolation, self.substeps)
-        self.passes = Passes(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)
+        self.passes = passes_of(self.param, layout, jit=settings.jit, max_source=FIT_SOURCE)
         self._subsets: dict[tuple, Passes] = {}
         self.length0 = self._first_length()
         #: The noise model of the fits: "white", an autoregressive order, or "auto" until a fit has chosen one

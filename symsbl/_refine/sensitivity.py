@@ -219,13 +219,14 @@ def state_step(param: Parameterisation, substeps: int) -> ca.Function:
 
 def _chunk(
     step: ca.Function, jit, n_samples: int, chunk: int = CHUNK, max_source: int = MAX_AUTO_SOURCE
-) -> ca.Function:
+) -> tuple[ca.Function, bool]:
     """``chunk`` steps of ``step`` (its first input and output carried, the other outputs returned at every
-    step), ``theta`` (input 3) given once; compiled under ``jit="auto"`` up to ``max_source`` bytes of C."""
+    step), ``theta`` (input 3) given once; compiled under ``jit="auto"`` up to ``max_source`` bytes of C. Returns
+    the function and whether it is compiled."""
     key = (hashlib.sha1(step.serialize().encode()).hexdigest(), "oe_chunk", chunk)
     cached = jit_lookup(key) if jit is not False else _VM_CHUNKS.get(key)
     if cached is not None:
-        return cached
+        return cached, jit is not False
     acc = step.mapaccum("steps", chunk)
     args = [
         ca.MX.sym(step.name_in(i), step.sparsity_in(i))
@@ -241,10 +242,9 @@ def _chunk(
         _VM_CHUNKS[key] = wrapper
         while len(_VM_CHUNKS) > 16:
             _VM_CHUNKS.pop(next(iter(_VM_CHUNKS)))
-        return wrapper
+        return wrapper, False
     lazy = jit == "auto" and n_samples < JIT_MIN_SAMPLES
-    fn, _ = jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy, max_source=max_source)
-    return fn
+    return jit_wrap(wrapper, "oe_chunk", jit, SimulationError, key=key, only_cached=lazy, max_source=max_source)
 
 
 #: Largest C source of a fit's passes compiled under ``jit="auto"`` (bytes). A fit calls them thousands of times:
@@ -262,6 +262,22 @@ FIT_SOURCE = 2_000_000
 STAGED_SOURCE = FIT_SOURCE
 #: Bytes of C per instruction of a step as CasADi writes it (measured 22.8 and 23.6 on chains of 5 and 10 masses).
 SOURCE_PER_INSTRUCTION = 24
+
+
+def _step(param: Parameterisation, records: Records, columns, staged: bool | None) -> tuple[ca.Function, dict, bool]:
+    """The step of a fit's passes, its layout and whether it is :func:`staged_step` (``staged`` None: when
+    :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`)."""
+    parts = (param, param.observe(records.outputs), records.n_outputs, records.substeps, columns)
+    step = None
+    if staged is None:
+        step, layout = sensitivity_step(*parts)
+        staged = step.n_instructions() * SOURCE_PER_INSTRUCTION > STAGED_SOURCE
+    if staged:
+        step, layout = staged_step(*parts)
+    elif step is None:
+        step, layout = sensitivity_step(*parts)
+    return step, layout, bool(staged)
+
 
 #: Uncompiled chunk functions of the structures used last, by the key of their step.
 _VM_CHUNKS: dict = {}
@@ -355,6 +371,9 @@ class Passes:
     precisions and the noise model, all given to it; the arrays this object keeps besides the records are
     scratch space the compiled calls read."""
 
+    chunk: int  # samples a compiled call steps through
+    compiled: bool  # whether the passes run compiled C (else CasADi's virtual machine)
+
     def __init__(
         self,
         param: Parameterisation,
@@ -363,26 +382,29 @@ class Passes:
         max_source: int = MAX_AUTO_SOURCE,
         columns=None,
         staged: bool | None = None,
+        host: tuple[Passes, np.ndarray] | None = None,
     ):
         """``columns``: the coefficients whose sensitivities the pass carries (indices into ``theta``, default all;
         the blocks of the others are zero); ``staged``: whether the step is :func:`staged_step` (default: when
-        :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`)."""
+        :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`); ``host``: passes of a structure holding this
+        one, whose compiled functions run it with the other coefficients at zero, and where each of ``param``'s
+        free coefficients sits among the host's (see :mod:`symsbl._refine.reuse`)."""
         self.param, self.records = param, records
         self.columns = _columns(param, columns)
-        parts = (param, param.observe(records.outputs), records.n_outputs, records.substeps, self.columns)
-        step = None
-        if staged is None:
-            step, self.layout = sensitivity_step(*parts)
-            staged = step.n_instructions() * SOURCE_PER_INSTRUCTION > STAGED_SOURCE
-        if staged:
-            step, self.layout = staged_step(*parts)
-        elif step is None:
-            step, self.layout = sensitivity_step(*parts)
-        self.staged = bool(staged)
+        self._host = host
+        if host is not None:
+            source: Passes = host[0]
+            self.layout: dict = source.layout
+            self.staged, self.chunk = False, source.chunk
+            self._sens: ca.Function = source._sens
+            self.compiled = source.compiled
+        else:
+            step, self.layout, self.staged = _step(param, records, self.columns, staged)
+            lay = self.layout
+            # divides CHUNK, the padding and the plain simulation's calls
+            self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
+            self._sens, self.compiled = _chunk(step, jit, records.n_total, self.chunk, max_source)
         lay = self.layout
-        # divides CHUNK, the padding and the plain simulation's calls
-        self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
-        self._sens = _chunk(step, jit, records.n_total, self.chunk, max_source)
         self.max_source = max_source
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
         self._state: ca.Function | None = None  # compiled when a plain simulation is asked for
@@ -474,16 +496,17 @@ class Passes:
             zero, the residual NaN outside it.
         """
         lay, C = self.layout, self.chunk
-        nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
+        nx, ny = lay["nx"], lay["ny"]
+        theta, keep = self._hosted(theta)
+        ns = lay["ns"] if keep is None else len(keep)
         ar = np.zeros((ny, 0)) if ar is None else np.asarray(ar, dtype=float).reshape(ny, -1)
         self._load(seg, X0)
-        theta = np.ascontiguousarray(theta, dtype=float)
         sw = np.sqrt(self.per_record(w))
         buf, call = self._sens_buffer
         z0 = np.zeros(lay["nz"])
         zout = np.empty((C, lay["nz"]))
         hout = np.empty((C, ny))
-        jout = np.empty((C, ny * ns))
+        jout = np.empty((C, ny * lay["ns"]))
         K = len(seg)
         H = np.zeros((K, ns, ns))
         g = np.zeros((K, ns))
@@ -498,11 +521,22 @@ class Passes:
         buf.set_res(2, _view(jout))  # type: ignore[call-arg]
         with one_blas_thread():
             done = self._chunks(
-                buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual, stop, rows
+                buf, call, seg, ar, sw, z0, (zout, hout, jout), (H, g, rr, end_S, kept), residual, stop, rows, keep
             )
         if not done:
             rr[:] = np.inf
         return self._whole(Blocks(H, g, rr, end_S, kept, residual))
+
+    def _hosted(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The coefficients the compiled passes take (a host's: ``theta`` where this structure has them, zero
+        elsewhere) and the sensitivities this structure keeps of theirs (None: all)."""
+        theta = np.asarray(theta, dtype=float)
+        if self._host is None:
+            return np.ascontiguousarray(theta), None
+        host, embed = self._host
+        full = np.zeros(host.param.n_free)
+        full[embed] = theta
+        return full, np.concatenate([embed, host.param.n_free + np.arange(self.layout["nx"])])
 
     def _whole(self, blocks: Blocks) -> Blocks:
         """``blocks`` of this pass's columns in the layout of every coefficient (zero where it carries none)."""
@@ -518,11 +552,13 @@ class Passes:
         return Blocks(H, g, blocks.rr, end_S, blocks.n_kept, blocks.residual)
 
     @np.errstate(over="ignore", invalid="ignore")  # a simulation that runs away gives non-finite blocks, refused later
-    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None, rows=None) -> bool:
+    def _chunks(self, buf, call, seg: Segments, ar, sw, z0, outs, sums, residual, stop=None, rows=None, pick=None):
         """The compiled calls of one pass, chunk by chunk, each chunk's rows whitened and summed into the blocks;
-        False when ``stop`` ended the pass early. ``rows``: see :meth:`sensitivities`."""
+        False when ``stop`` ended the pass early. ``rows``: see :meth:`sensitivities`; ``pick``: the sensitivities
+        summed, indices among the step's (None: every one)."""
         lay, C = self.layout, self.chunk
-        nx, ns, ny = lay["nx"], lay["ns"], lay["ny"]
+        nx, ny, every = lay["nx"], lay["ny"], lay["ns"]
+        ns = every if pick is None else len(pick)
         zout, hout, jout = outs
         H, g, rr, end_S, kept = sums
         order = ar.shape[1]
@@ -540,7 +576,8 @@ class Passes:
             if n <= 0:
                 break
             R = self.Y[a : a + n] - hout[:n]  # (n, ny)
-            J = jout[:n].reshape(n, ns, ny).transpose(0, 2, 1)  # (n, ny, ns)
+            J = jout[:n].reshape(n, every, ny)
+            J = (J if pick is None else J[:, pick]).transpose(0, 2, 1)  # (n, ny, ns)
             keep = self.valid[a : a + n]
             if rows is not None:  # the rows before the window were simulated from no state: they do not count
                 at = np.arange(a, a + n)
@@ -567,7 +604,8 @@ class Passes:
             np.add.at(kept, seg.piece_segment[p0:p1], np.add.reduceat(keep, seg.piece_starts[p0:p1] - a, axis=0))
             last = seg.ends[(seg.ends >= max(a, lo)) & (seg.ends < min(a + n, hi))]
             if last.size:
-                end_S[np.searchsorted(seg.ends, last)] = zout[last - a, nx:].reshape(-1, ns, nx)
+                ends = zout[last - a, nx:].reshape(-1, every, nx)
+                end_S[np.searchsorted(seg.ends, last)] = ends if pick is None else ends[:, pick]
             if stop is not None and stop(0.5 * rr.sum()):
                 return False
         return True
@@ -611,16 +649,22 @@ class Passes:
                 ).T
         return out[:n]
 
+    def _state_pass(self) -> ca.Function:
+        """The plain simulation's chunk function (a host's, for a structure it holds), built when first asked for."""
+        if self._host is not None:
+            return self._host[0]._state_pass()
+        if self._state is None:
+            step = state_step(self.param, self.records.substeps)
+            self._state, _ = _chunk(step, self.jit, self.records.n_total, max_source=self.max_source)
+        return self._state
+
     def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""
         nx, C = self.layout["nx"], CHUNK
         self._load(seg, X0)
-        theta = np.ascontiguousarray(theta, dtype=float)
+        theta, _ = self._hosted(theta)
         out = np.empty((self.n_pad, nx))
-        if self._state is None:
-            step = state_step(self.param, self.records.substeps)
-            self._state = _chunk(step, self.jit, self.records.n_total, max_source=self.max_source)
-        buf, call = self._state.buffer()
+        buf, call = self._state_pass().buffer()
         x0 = np.zeros(nx)
         buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
         for a in range(0, self.n_pad, C):
