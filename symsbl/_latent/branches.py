@@ -197,11 +197,11 @@ def rivals(branches: dict, chosen: str, nats: float, latent: str) -> dict:
         The latent state: its law counts only where another equation uses it.
     """
     best = branches[chosen]
-    name = re.compile(rf"(?<![\w.]){re.escape(latent)}(?![\w(])")  # the state in a term's name
+    state = re.compile(rf"(?<![\w.]){re.escape(latent)}(?![\w(])")  # the state in a term's name
 
     def structure(branch: dict) -> dict:
         terms = {lhs: sorted(names) for lhs, names in branch["terms"].items() if names}
-        used = any(name.search(t) for lhs, names in terms.items() if lhs != latent for t in names)
+        used = any(state.search(t) for lhs, names in terms.items() if lhs != latent for t in names)
         return {lhs: names for lhs, names in terms.items() if lhs != latent or used}
 
     return {
