@@ -221,6 +221,11 @@ def look_alikes(
     return found
 
 
+#: Share of a candidate's squared norm outside ``span(A)`` below which :func:`partial_cosines` projects it (the
+#: difference of squares keeps about ``log10(1 / NEAR_SPAN)`` fewer digits than the projection).
+NEAR_SPAN = 1e-4
+
+
 def partial_cosines(A: np.ndarray, V: np.ndarray) -> np.ndarray:
     """``|cos|`` of the angle between each column ``j`` of ``A`` (n_rows, n_terms) and each column of ``V``
     (n_rows, n_candidates), both with ``A``'s other columns projected out: ``(n_terms, n_candidates)``.
@@ -228,9 +233,18 @@ def partial_cosines(A: np.ndarray, V: np.ndarray) -> np.ndarray:
     ``span(A)`` is the others' span plus the unit direction ``d`` of column ``j``'s part they miss, so a
     candidate ``v`` less its projection on the others is ``v_A + (d . v) d``, ``v_A`` its part outside
     ``span(A)``: one pass over the candidates serves every column (a pass per column cost seconds on a
-    library of 390 terms)."""
+    library of 390 terms). ``|v_A|^2 = |v|^2 - |Q^T v|^2`` needs no array of ``V``'s size (the projection did:
+    1.4 s a call, mostly writing fresh memory, on a ten-mass chain's 16385 rows and 1772 candidates, against
+    0.3 s); a candidate within :data:`NEAR_SPAN` of ``span(A)``, where the difference loses digits, is
+    projected."""
     Q_all = np.linalg.qr(A)[0]
-    outside = np.linalg.norm(V - Q_all @ (Q_all.T @ V), axis=0) ** 2
+    total = np.einsum("ij,ij->j", V, V)
+    P = Q_all.T @ V
+    outside = total - np.einsum("ij,ij->j", P, P)
+    near = outside <= NEAR_SPAN * total
+    if near.any():
+        W = V[:, near]
+        outside[near] = np.linalg.norm(W - Q_all @ (Q_all.T @ W), axis=0) ** 2
     out = np.zeros((A.shape[1], V.shape[1]))
     for j in range(A.shape[1]):
         others = np.delete(A, j, axis=1)
