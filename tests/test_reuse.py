@@ -45,11 +45,11 @@ def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks()
     settings = Settings(substeps=2, jit=True)
     with reuse.shared_passes():
         host = Engine(start, [first], ("x1", "x2"), settings, candidates)
-        assert host.passes.compiled and host.passes._host is None
+        assert host.passes.compiled and host.passes._embed is None
         engine = Engine(start, [second], ("x1", "x2"), settings, {})
     passes = engine.passes
-    assert passes._host is not None and passes._host[0] is host.passes
-    assert host.names[int(passes._host[1][0])] == engine.names[0]  # the embedding goes by (state, term)
+    assert passes._embed is not None and passes.kernels is host.passes.kernels
+    assert host.names[int(passes._embed[0])] == engine.names[0]  # the embedding goes by (state, term)
     alone = Passes(passes.param, passes.records, jit=False)
     theta = engine.param.theta0 * (1 + 0.02 * np.cos(np.arange(engine.param.n_free)))
     w = np.array([1e4, 1e2])
@@ -66,21 +66,25 @@ def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks()
 
 def test_only_a_structure_the_host_computes_and_within_the_share_is_hosted(monkeypatch):
     """A structure with a term the host lacks, other RK4 steps, or too few sensitivities for the host's cost gets
-    passes of its own; outside a scope nothing is shared."""
+    passes of its own, and so does one whose host holds a term unbounded in value or slope; outside a scope nothing
+    is shared."""
     record = _record(3)
     start = identify(record, _library(), refine=False)
     x1, x2 = start.states
     compiled = Settings(substeps=2, jit=True)
+    with reuse.shared_passes():  # a host's term outside the structure runs at zero: 0 * inf (its slope at 0) is NaN
+        Engine(start, [record], ("x1", "x2"), compiled, {"x2": [(ca.sqrt(ca.fabs(x1)), 0.0)]})
+        assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._embed is None
     with reuse.shared_passes():
         host = Engine(start, [record], ("x1", "x2"), compiled, {"x2": [(ca.sin(x1), 0.0)]})
-        assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._host[0] is host.passes
+        assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes.kernels is host.passes.kernels
         other = Engine(start, [record], ("x1", "x2"), compiled, {"x2": [(ca.cos(x1), 0.0)]})
-        assert other.passes._host is None  # cos(x1): not in the host
+        assert other.passes._embed is None  # cos(x1): not in the host
         steps = Engine(start, [record], ("x1", "x2"), Settings(substeps=3, jit=True), {})
-        assert steps.passes._host is None
+        assert steps.passes._embed is None
         monkeypatch.setattr(reuse, "HOST_SHARE", 1.0)
-        assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._host is None
-    assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._host is None
+        assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._embed is None
+    assert Engine(start, [record], ("x1", "x2"), compiled, {}).passes._embed is None
 
 
 def test_a_refinement_sharing_compiled_passes_returns_the_model_it_returns_alone(monkeypatch):

@@ -20,22 +20,28 @@ import contextlib
 import contextvars
 
 import numpy as np
+import sympy as sp
 
 from .._base.jit import MAX_AUTO_SOURCE
 from .problem import Parameterisation, Records
-from .sensitivity import Passes
+from .sensitivity import Kernels, Passes
 
 __all__ = ["shared_passes", "passes_of", "HOST_SHARE", "HOSTS_KEPT"]
 
 #: A structure runs on a host's passes when its sensitivities (coefficients and states) are at least this share of
-#: the host's: a pass costs about in proportion to the sensitivities it carries, a compilation 0.3-3 s. The demo's
-#: model paths (6-10 of 14-25 sensitivities) share at 0.3 and not at 0.6; chains of 3 and 5 masses share alike.
-HOST_SHARE = 0.3
+#: the host's: a pass costs about in proportion to the sensitivities it carries, a compilation 0.3-3 s, and a
+#: structure compiled in an earlier run loads in milliseconds (so a warm cache pays the host's surplus for nothing).
+#: Chains of 3 and 5 masses share at 0.6 as at 0.3; the demo's model paths (6-10 of 14-25 sensitivities) at 0.3
+#: only, for 10 compilations of 0.3-0.5 s.
+HOST_SHARE = 0.6
+#: Functions whose value and derivative are finite wherever their arguments are: a host's term outside the
+#: structure is multiplied by zero, and ``0 * inf`` (``1/x``, ``sqrt(x)``'s slope at 0, ``log``) is NaN.
+BOUNDED = (sp.sin, sp.cos, sp.tanh, sp.atan, sp.Abs, sp.sign, sp.exp)
 #: Compiled structures kept within one scope (the newest).
 HOSTS_KEPT = 6
 
 #: The compiled structures of the scope open in this context (None: outside a scope, nothing is shared).
-_HOSTS: contextvars.ContextVar[list[Passes] | None] = contextvars.ContextVar("symsbl_hosts", default=None)
+_HOSTS: contextvars.ContextVar[list[Kernels] | None] = contextvars.ContextVar("symsbl_hosts", default=None)
 
 
 @contextlib.contextmanager
@@ -64,18 +70,18 @@ def passes_of(param: Parameterisation, records: Records, jit="auto", max_source:
         return Passes(param, records, jit=jit, host=(host, embed), max_source=max_source)
     own = Passes(param, records, jit=jit, max_source=max_source)
     if own.compiled and not own.staged:
-        hosts.append(own)
+        hosts.append(own.kernels)  # the compiled functions, not the records
         del hosts[:-HOSTS_KEPT]
     return own
 
 
-def _embedding(param: Parameterisation, records: Records, host: Passes) -> np.ndarray | None:
+def _embedding(param: Parameterisation, records: Records, host: Kernels) -> np.ndarray | None:
     """Where each of ``param``'s free coefficients sits in ``host``'s, when ``host``'s compiled passes compute
     ``param``'s right-hand side and outputs with its other coefficients at zero (else None)."""
-    nx, theirs_records = len(param.model.states), host.records
+    nx = len(param.model.states)
     if param.n_free + nx < HOST_SHARE * (host.param.n_free + nx):
         return None
-    if records.substeps != theirs_records.substeps or records.outputs != theirs_records.outputs:
+    if records.substeps != host.substeps or records.outputs != host.outputs:
         return None
     mine, theirs = param.model, host.param.model
     if (
@@ -85,7 +91,8 @@ def _embedding(param: Parameterisation, records: Records, host: Passes) -> np.nd
     ):
         return None
     slots = _slots(host.param)
-    embed, fixed_seen = [], 0
+    embed: list[int] = []
+    fixed_seen = 0
     for i, j, free in param.terms:
         term = mine.equations[i].terms[j]
         slot = slots.get((i, term.name, str(term.expr)))
@@ -97,7 +104,22 @@ def _embedding(param: Parameterisation, records: Records, host: Passes) -> np.nd
             fixed_seen += 1
     if fixed_seen != sum(not free for _, _, free in host.param.terms):  # a fixed term of the host's only: not zero
         return None
-    return np.array(embed, dtype=int)
+    if len(set(embed)) != len(embed):  # a term twice: one coefficient of the host's for two of this structure's
+        return None
+    extra = [t for k, t in enumerate(_free_terms(host.param)) if k not in set(embed)]
+    return np.array(embed, dtype=int) if all(_bounded(t.sympy) for t in extra) else None
+
+
+def _free_terms(param: Parameterisation) -> list:
+    """The terms of ``param``'s free coefficients, in their order."""
+    return [param.model.equations[i].terms[j] for i, j, free in param.terms if free]
+
+
+def _bounded(expr: sp.Expr) -> bool:
+    """Whether a term's value and its derivatives are finite wherever its variables are: polynomials in them and
+    in :data:`BOUNDED` functions of them (``tan`` is not: a pole within a runaway trial would poison the pass)."""
+    powers = all(p.exp.is_Integer and p.exp >= 0 for p in expr.atoms(sp.Pow))
+    return powers and all(isinstance(f, BOUNDED) for f in expr.atoms(sp.Function))
 
 
 def _slots(param: Parameterisation) -> dict:

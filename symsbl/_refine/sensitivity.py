@@ -279,6 +279,32 @@ def _step(param: Parameterisation, records: Records, columns, staged: bool | Non
     return step, layout, bool(staged)
 
 
+@dataclass
+class Kernels:
+    """The chunk functions of one structure's passes, which passes of a sub-structure may run (see
+    :mod:`symsbl._refine.reuse`): the pass with sensitivities, and the plain simulation built when first asked for.
+    They hold no record: the samples are their inputs."""
+
+    param: Parameterisation
+    outputs: tuple
+    substeps: int
+    layout: dict
+    chunk: int
+    sens: ca.Function
+    compiled: bool
+    jit: object
+    n_samples: int
+    max_source: int
+    state: ca.Function | None = None
+
+    def state_pass(self) -> ca.Function:
+        """The plain simulation's chunk function (compiled as the pass's ``jit`` says)."""
+        if self.state is None:
+            step = state_step(self.param, self.substeps)
+            self.state, _ = _chunk(step, self.jit, self.n_samples, max_source=self.max_source)
+        return self.state
+
+
 #: Uncompiled chunk functions of the structures used last, by the key of their step.
 _VM_CHUNKS: dict = {}
 
@@ -382,32 +408,31 @@ class Passes:
         max_source: int = MAX_AUTO_SOURCE,
         columns=None,
         staged: bool | None = None,
-        host: tuple[Passes, np.ndarray] | None = None,
+        host: tuple[Kernels, np.ndarray] | None = None,
     ):
         """``columns``: the coefficients whose sensitivities the pass carries (indices into ``theta``, default all;
         the blocks of the others are zero); ``staged``: whether the step is :func:`staged_step` (default: when
-        :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`); ``host``: passes of a structure holding this
-        one, whose compiled functions run it with the other coefficients at zero, and where each of ``param``'s
-        free coefficients sits among the host's (see :mod:`symsbl._refine.reuse`)."""
+        :func:`sensitivity_step`'s would exceed :data:`STAGED_SOURCE`); ``host``: the :class:`Kernels` of a structure
+        holding this one, which run it with the other coefficients at zero, and where each of ``param``'s free
+        coefficients sits among that structure's (see :mod:`symsbl._refine.reuse`)."""
+        assert host is None or columns is None  # a hosted structure keeps its own coefficients' sensitivities
         self.param, self.records = param, records
         self.columns = _columns(param, columns)
-        self._host = host
+        self._embed = None if host is None else host[1]
         if host is not None:
-            source: Passes = host[0]
-            self.layout: dict = source.layout
-            self.staged, self.chunk = False, source.chunk
-            self._sens: ca.Function = source._sens
-            self.compiled = source.compiled
+            self.kernels, self.staged = host[0], False
         else:
-            step, self.layout, self.staged = _step(param, records, self.columns, staged)
-            lay = self.layout
+            step, layout, self.staged = _step(param, records, self.columns, staged)
             # divides CHUNK, the padding and the plain simulation's calls
-            self.chunk = chunk_size(lay["nz"] + lay["ny"] * (1 + lay["ns"]))
-            self._sens, self.compiled = _chunk(step, jit, records.n_total, self.chunk, max_source)
+            chunk = chunk_size(layout["nz"] + layout["ny"] * (1 + layout["ns"]))
+            sens, compiled = _chunk(step, jit, records.n_total, chunk, max_source)
+            kept = (records.outputs, records.substeps, layout, chunk, sens, compiled, jit, records.n_total)
+            self.kernels = Kernels(param, *kept, max_source)
+        self.layout, self.chunk, self.compiled = self.kernels.layout, self.kernels.chunk, self.kernels.compiled
+        self._sens = self.kernels.sens
         lay = self.layout
         self.max_source = max_source
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
-        self._state: ca.Function | None = None  # compiled when a plain simulation is asked for
         self.jit = jit
         n, C = records.n_total, CHUNK
         self.n_pad = -(-n // C) * C
@@ -531,12 +556,12 @@ class Passes:
         """The coefficients the compiled passes take (a host's: ``theta`` where this structure has them, zero
         elsewhere) and the sensitivities this structure keeps of theirs (None: all)."""
         theta = np.asarray(theta, dtype=float)
-        if self._host is None:
+        if self._embed is None:
             return np.ascontiguousarray(theta), None
-        host, embed = self._host
-        full = np.zeros(host.param.n_free)
-        full[embed] = theta
-        return full, np.concatenate([embed, host.param.n_free + np.arange(self.layout["nx"])])
+        n_host = self.kernels.param.n_free
+        full = np.zeros(n_host)
+        full[self._embed] = theta
+        return full, np.concatenate([self._embed, n_host + np.arange(self.layout["nx"])])
 
     def _whole(self, blocks: Blocks) -> Blocks:
         """``blocks`` of this pass's columns in the layout of every coefficient (zero where it carries none)."""
@@ -649,22 +674,13 @@ class Passes:
                 ).T
         return out[:n]
 
-    def _state_pass(self) -> ca.Function:
-        """The plain simulation's chunk function (a host's, for a structure it holds), built when first asked for."""
-        if self._host is not None:
-            return self._host[0]._state_pass()
-        if self._state is None:
-            step = state_step(self.param, self.records.substeps)
-            self._state, _ = _chunk(step, self.jit, self.records.n_total, max_source=self.max_source)
-        return self._state
-
     def simulate(self, theta: np.ndarray, X0: np.ndarray, seg: Segments) -> np.ndarray:
         """The simulated states of every sample ``(n_total, nx)`` from the segments' initial states."""
         nx, C = self.layout["nx"], CHUNK
         self._load(seg, X0)
         theta, _ = self._hosted(theta)
         out = np.empty((self.n_pad, nx))
-        buf, call = self._state_pass().buffer()
+        buf, call = self.kernels.state_pass().buffer()
         x0 = np.zeros(nx)
         buf.set_arg(3, _view(theta))  # type: ignore[call-arg]
         for a in range(0, self.n_pad, C):
