@@ -28,16 +28,17 @@ def _library():
     return symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
 
 
-def _blocks(passes: Passes, theta, guess, w):
+def _blocks(passes: Passes, theta, guess, w, **options):
     starts = passes.segment_starts(200)
-    return passes.sensitivities(theta, guess[starts], passes.segments(starts), w), starts
+    return passes.sensitivities(theta, guess[starts], passes.segments(starts), w, **options), starts
 
 
 def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks():
     """Inside one scope, the equation error's structure, fitted on another record after an engine of it with three
     candidates was compiled, runs on that engine's compiled functions; its Gauss-Newton blocks, end sensitivities,
     residuals and simulated states are those of passes built for it alone on CasADi's virtual machine (an
-    independent evaluation of the same discrete map) to round-off."""
+    independent evaluation of the same discrete map) to round-off, with white or autoregressive noise and over a
+    window of the record."""
     first, second = _record(1), _record(2)
     start = identify(first, _library(), refine=False)
     x1, x2 = start.states
@@ -53,14 +54,16 @@ def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks()
     alone = Passes(passes.param, passes.records, jit=False)
     theta = engine.param.theta0 * (1 + 0.02 * np.cos(np.arange(engine.param.n_free)))
     w = np.array([1e4, 1e2])
-    mine, starts = _blocks(passes, theta, engine.guess, w)
-    reference, _ = _blocks(alone, theta, engine.guess, w)
-    assert mine.H.shape == reference.H.shape == (len(starts), engine.param.n_free + 2, engine.param.n_free + 2)
-    for a, b in ((mine.H, reference.H), (mine.g, reference.g), (mine.end_S, reference.end_S)):
-        assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
-    assert np.allclose(mine.rr, reference.rr, rtol=1e-10) and np.array_equal(mine.n_kept, reference.n_kept)
-    seg = passes.segments(starts)
-    X = passes.simulate(theta, engine.guess[starts], seg)
+    starts = passes.segment_starts(200)
+    ar = np.array([[0.4, -0.1], [0.2, 0.05]])  # an autoregressive noise model whitens J's rows too
+    for options in ({}, {"ar": ar}, {"rows": (int(starts[1]), int(starts[3]))}):
+        mine, _ = _blocks(passes, theta, engine.guess, w, **options)
+        reference, _ = _blocks(alone, theta, engine.guess, w, **options)
+        assert mine.H.shape == reference.H.shape == (len(starts), engine.param.n_free + 2, engine.param.n_free + 2)
+        for a, b in ((mine.H, reference.H), (mine.g, reference.g), (mine.end_S, reference.end_S)):
+            assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))
+        assert np.allclose(mine.rr, reference.rr, rtol=1e-10) and np.array_equal(mine.n_kept, reference.n_kept)
+    X = passes.simulate(theta, engine.guess[starts], passes.segments(starts))
     assert np.allclose(X, alone.simulate(theta, engine.guess[starts], alone.segments(starts)), rtol=1e-10, atol=1e-14)
 
 

@@ -9,8 +9,9 @@ measured channels; the records are the passes' inputs, not their code) is fitted
 compiled functions with its other coefficients at zero: the same discrete map, so the same states,
 outputs and sensitivities (to rounding), at the cost of the sensitivities the larger structure carries.
 
-:func:`shared_passes` opens the scope in which structures share (one refinement: what is compiled in
-one call, or thread, is not kept for the next, so a call's result does not depend on what ran before it);
+:func:`shared_passes` opens the scope in which structures share: one refinement, in its own thread. What
+one call compiled does not host the next call's structures, so which structures share depends on the call
+alone (and, under ``jit="auto"`` on short records, on which passes the compilation cache already holds);
 :func:`passes_of` is where an engine gets its passes.
 """
 
