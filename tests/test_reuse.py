@@ -28,9 +28,8 @@ def _library():
     return symsbl.polynomial([x1, x2], 3) + symsbl.inputs([F])
 
 
-def _blocks(passes: Passes, theta, guess, w, **options):
-    starts = passes.segment_starts(200)
-    return passes.sensitivities(theta, guess[starts], passes.segments(starts), w, **options), starts
+def _blocks(passes: Passes, theta, guess, w, starts, **options):
+    return passes.sensitivities(theta, guess[starts], passes.segments(starts), w, **options)
 
 
 def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks():
@@ -57,8 +56,8 @@ def test_a_sub_structure_runs_on_its_hosts_compiled_passes_with_its_own_blocks()
     starts = passes.segment_starts(200)
     ar = np.array([[0.4, -0.1], [0.2, 0.05]])  # an autoregressive noise model whitens J's rows too
     for options in ({}, {"ar": ar}, {"rows": (int(starts[1]), int(starts[3]))}):
-        mine, _ = _blocks(passes, theta, engine.guess, w, **options)
-        reference, _ = _blocks(alone, theta, engine.guess, w, **options)
+        mine = _blocks(passes, theta, engine.guess, w, starts, **options)
+        reference = _blocks(alone, theta, engine.guess, w, starts, **options)
         assert mine.H.shape == reference.H.shape == (len(starts), engine.param.n_free + 2, engine.param.n_free + 2)
         for a, b in ((mine.H, reference.H), (mine.g, reference.g), (mine.end_S, reference.end_S)):
             assert np.allclose(a, b, rtol=1e-9, atol=1e-12 * np.max(np.abs(b)))

@@ -105,9 +105,10 @@ def _embedding(param: Parameterisation, records: Records, host: Kernels) -> np.n
             fixed_seen += 1
     if fixed_seen != sum(not free for _, _, free in host.param.terms):  # a fixed term of the host's only: not zero
         return None
-    if len(set(embed)) != len(embed):  # a term twice: one coefficient of the host's for two of this structure's
+    used = set(embed)
+    if len(used) != len(embed):  # a term twice: one coefficient of the host's for two of this structure's
         return None
-    extra = [t for k, t in enumerate(_free_terms(host.param)) if k not in set(embed)]
+    extra = [t for k, t in enumerate(_free_terms(host.param)) if k not in used]
     return np.array(embed, dtype=int) if all(_bounded(t.sympy) for t in extra) else None
 
 

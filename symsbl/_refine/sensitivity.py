@@ -430,6 +430,8 @@ class Passes:
             self.kernels = Kernels(param, *kept, max_source)
         self.layout, self.chunk, self.compiled = self.kernels.layout, self.kernels.chunk, self.kernels.compiled
         self._sens = self.kernels.sens
+        n_host = self.kernels.param.n_free  # a hosted structure keeps its coefficients' and the states' sensitivities
+        self._pick = None if host is None else np.concatenate([host[1], n_host + np.arange(self.layout["nx"])])
         lay = self.layout
         self.max_source = max_source
         self._sens_buffer = self._sens.buffer()  # creating a buffer costs milliseconds for a large step
@@ -558,10 +560,9 @@ class Passes:
         theta = np.asarray(theta, dtype=float)
         if self._embed is None:
             return np.ascontiguousarray(theta), None
-        n_host = self.kernels.param.n_free
-        full = np.zeros(n_host)
+        full = np.zeros(self.kernels.param.n_free)
         full[self._embed] = theta
-        return full, np.concatenate([self._embed, n_host + np.arange(self.layout["nx"])])
+        return full, self._pick
 
     def _whole(self, blocks: Blocks) -> Blocks:
         """``blocks`` of this pass's columns in the layout of every coefficient (zero where it carries none)."""
