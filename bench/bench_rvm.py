@@ -13,11 +13,6 @@ batches and with the entering set known in advance (that approach's bound).
     python bench/bench_rvm.py --threads     # the same with the BLAS libraries' default threads
     python bench/bench_rvm.py --recovery    # false positives over 20 seeds vs prune_nats
     python bench/bench_rvm.py --detection   # smallest detectable term vs prune_nats
-    python bench/bench_rvm.py --search      # identify's support search, trials from their neighbour or not
-
-The search study takes identify's equation error on bench_mdof's chains of 2 and 3 masses (every state
-measured, the cubic library of states and F) and times each equation's support search in one process, its
-trials refitted from the current support's fit (identify's way) or each from SparseBayes's own start.
 """
 
 from __future__ import annotations
@@ -261,105 +256,16 @@ def detection(n=30_000, seeds=range(10)):
         print(f"| {z:g} | " + " | ".join(f"{hits[r] / len(seeds):.1f}" for r in rules) + " |")
 
 
-def _searches(n):
-    """The chain of ``n`` masses and the arguments of every support search its equation error runs."""
-    import bench_mdof
-
-    import symsbl
-    from symsbl._regression import fit as fitting
-
-    system, record, naming, _ = bench_mdof.observed(n, "all")
-    library = symsbl.polynomial(list(system.states), 3) + symsbl.inputs(list(system.inputs))
-    calls, original = [], fitting.search_support
-
-    def spy(*args):
-        calls.append(args)
-        return original(*args)
-
-    fitting.search_support = spy
-    try:
-        symsbl.identify(record, library, refine=False, **naming)
-    finally:
-        fitting.search_support = original
-    return system, calls
-
-
-def _searched(args, neighbour: bool):
-    """One support search, its trials started from the current fit or each from SparseBayes's own start: the
-    support, look-alikes, kept columns and final coefficients, the supports scored and the solver's iterations."""
-    from symsbl._regression import support
-
-    start = support.SupportSearch._start
-    if not neighbour:
-        support.SupportSearch._start = lambda self, key: None
-    try:
-        active, alternatives, found = support.search_support(*args)
-        kept, final = found.final(active)
-    finally:
-        support.SupportSearch._start = start
-    iterations = sum(f.n_iter_ for _, _, f in found.cache.values())
-    return (active, alternatives, kept, final.coef_.tolist()), len(found.cache), iterations
-
-
-def search(masses=(2, 3), repeats=3):
-    """Each equation's support search with its trials started from the current fit, and from SparseBayes's own
-    start: the supports scored, the solver's iterations, the time (best of ``repeats``, interleaved) and
-    whether the two give the same support and bitwise the same final fit."""
-    rows = []
-    for n in masses:
-        system, calls = _searches(n)
-        for args in calls:
-            runs = {"own start": lambda a=args: _searched(a, False), "neighbour": lambda a=args: _searched(a, True)}
-            timed = timed_together(runs, repeats=repeats, warmup=False)
-            (result_own, scored, own_iter), own_time = timed["own start"]
-            (result_new, _, new_iter), new_time = timed["neighbour"]
-            name = str(system.states[args[2]]) + "'"
-            rows.append(
-                (
-                    n,
-                    name,
-                    len(args[3]),
-                    scored,
-                    own_iter,
-                    new_iter,
-                    f"{own_time:.2f}",
-                    f"{new_time:.2f}",
-                    f"{own_time / new_time:.2f}",
-                    "yes" if result_own == result_new else "NO",
-                )
-            )
-    table(
-        f"Support search per equation, best of {repeats}, interleaved",
-        [
-            "masses",
-            "equation",
-            "candidates",
-            "supports scored",
-            "iterations (own start)",
-            "iterations (neighbour)",
-            "s (own start)",
-            "s (neighbour)",
-            "ratio",
-            "same result",
-        ],
-        rows,
-    )
-
-
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recovery", action="store_true")
     parser.add_argument("--detection", action="store_true")
-    parser.add_argument("--search", action="store_true", help="identify's support search on bench_mdof's chains")
     parser.add_argument("--threads", action="store_true", help="keep the BLAS libraries' default threads")
     args = parser.parse_args()
     if args.recovery:
         recovery()
     elif args.detection:
         detection()
-    elif args.search:
-        with one_blas_thread():
-            search()
     elif args.threads:
         speed()
     else:
@@ -370,8 +276,6 @@ if __name__ == "__main__":
         + (
             "recovery"
             if args.recovery
-            else "search"
-            if args.search
             else "detection"
             if args.detection
             else "speed-threads"

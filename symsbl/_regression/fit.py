@@ -173,7 +173,7 @@ def _fit_equation(
             algebraic=algebraic,
         )
     active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
-    kept, final = search.final(active)
+    _, kept, final = search.score(active)
     names = {col: tuple(library.terms[i].name for i in alternatives.get(col, ())) for col in kept}
     runners = [library.terms[c].name for c in search.runners_up(kept, final)]
     return Equation.from_fit(

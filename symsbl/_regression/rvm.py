@@ -218,12 +218,6 @@ class RVM:
 
     def fit_stats(self, stats: GramStats, target: int = 0):
         """Fit target ``target`` of precomputed :class:`GramStats`; returns ``self``."""
-        return self._fit_stats(stats, target)
-
-    def _fit_stats(self, stats: GramStats, target: int = 0, start=None):
-        """:meth:`fit_stats`, started from ``start = (columns, alpha, noise_var)`` when it is given: positions of
-        columns in ``stats`` with their prior precisions and the noise variance as another fit on the same
-        columns reports them (``alpha_``, ``noise_var_``)."""
         if not isinstance(stats, GramStats):
             raise ParameterError(expected("stats", "a GramStats", type(stats).__name__, raw=True))
         target = check_target(target, stats.n_targets)
@@ -239,10 +233,9 @@ class RVM:
             stats.y_sum[target],
             float(stats.n_samples),
             residual,
-            start,
         )
 
-    def _fit(self, gram, scale, dty, tt, y_sum, n, residual=None, start=None):
+    def _fit(self, gram, scale, dty, tt, y_sum, n, residual=None):
         """Solve from the unit-normalised Gram (a matrix or a column source) and the moments."""
         M = len(dty)
         if M < 1:
@@ -261,9 +254,6 @@ class RVM:
         # the target in units of its standard deviation, as the columns in units of their norm: then no threshold
         # of the solver (theta > 1e-12, the first prior) depends on the unit the data are in
         unit = np.sqrt(var_t)
-        if start is not None:  # into the solver's units: columns of unit norm, the target of unit spread
-            cols, alpha, noise_var = start
-            start = (list(cols), np.asarray(alpha) * unit**2 / scale[cols] ** 2, unit**2 / noise_var)
         sol = solve(
             gram,
             dty / scale / unit,
@@ -278,7 +268,6 @@ class RVM:
             tol=self.tol,
             residual=None if residual is None else (lambda active, mu: residual(active, mu * unit) / unit**2),
             log=print if self.verbose else None,
-            start=start,
         )
         self._store(sol, scale, unit, n, M, options["prune"])
         return self

@@ -31,8 +31,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._base.errors import ParameterError, expected
-
 __all__ = ["DenseGram", "Solution", "posterior", "solve"]
 
 _ZERO_FACTOR = 1e-12  # theta = q^2 - s below this counts as "not relevant" (SparseBayes)
@@ -63,8 +61,7 @@ class DenseGram:
 
     def block(self, idx):
         """``G[idx][:, idx]``, shape (len(idx), len(idx)), without copying the other rows of its columns."""
-        idx = np.asarray(idx, dtype=np.intp)
-        return self.matrix[idx[:, None], idx]
+        return self.matrix[np.ix_(idx, idx)]
 
 
 @dataclass(frozen=True)
@@ -120,7 +117,7 @@ def posterior(gram_uu, b_u, alpha, beta):
     u_inv = np.linalg.inv(upper)
     sigma = u_inv @ u_inv.T
     mu = beta * (sigma @ b_u)
-    return mu, sigma, u_inv, 2.0 * float(np.sum(np.log(upper.diagonal())))
+    return mu, sigma, u_inv, 2.0 * float(np.sum(np.log(np.diag(upper))))
 
 
 class _State:
@@ -149,7 +146,7 @@ class _State:
         s, q = self.S.copy(), self.Q.copy()
         # For an active basis, alpha - S = alpha^2 Sigma_ii and Q = alpha mu_i, so the
         # left-out factors follow from the posterior without cancellation.
-        sig = self.sigma.diagonal()
+        sig = np.diag(self.sigma)
         s[self.active] = 1.0 / sig - self.alpha
         q[self.active] = self.mu / sig
         return s, q
@@ -157,7 +154,7 @@ class _State:
     def contribution(self):
         """Exact log-evidence drop from deleting each active basis (others fixed):
         ``1/2 [mu_i^2 / Sigma_ii + log(alpha_i Sigma_ii)]``."""
-        sig = self.sigma.diagonal()
+        sig = np.diag(self.sigma)
         return 0.5 * (self.mu**2 / sig + np.log(self.alpha * sig))
 
     def reestimate(self, k, new_alpha):
@@ -182,15 +179,15 @@ class _State:
         sigma[:m, m] = sigma[m, :m] = -sig_ii * e
         sigma[m, m] = sig_ii
         self.sigma = sigma
-        self.mu = np.concatenate([self.mu - mu_i * e, [mu_i]])
+        self.mu = np.append(self.mu - mu_i * e, mu_i)
         c = basis_i - self.basis @ e
         self.S -= sig_ii * c**2
         self.Q -= mu_i * c
-        self.basis = np.concatenate([self.basis, basis_i[:, None]], axis=1)
-        self.cols = np.concatenate([self.cols, col[:, None]], axis=1)
+        self.basis = np.column_stack([self.basis, basis_i])
+        self.cols = np.column_stack([self.cols, col])
         self.aligned |= np.abs(col) > _ALIGN_MAX
         self.active.append(i)
-        self.alpha = np.concatenate([self.alpha, [new_alpha]])
+        self.alpha = np.append(self.alpha, new_alpha)
 
     def delete(self, k):
         sig_k, sig_kk, mu_k = self.sigma[:, k].copy(), self.sigma[k, k], self.mu[k]
@@ -227,10 +224,7 @@ def _choose(state, s, q, free_mask, prune):
     re_gain[~relevant] = -np.inf
     # Deletion of active, non-free bases (always possible when a penalty is set).
     deletable = ~free_mask[u] & (len(u) > 1) & (~relevant | (prune > 0))
-    # the contributions count only where a deletion is possible
-    del_gain = np.full(len(u), -np.inf)
-    if deletable.any():
-        del_gain = np.where(deletable, prune - state.contribution(), -np.inf)
+    del_gain = np.where(deletable, prune - state.contribution(), -np.inf)
     use_del = del_gain > re_gain
     gain[u] = np.where(use_del, del_gain, re_gain)
     action[u] = np.where(use_del, _DELETE, _REESTIMATE)
@@ -239,7 +233,7 @@ def _choose(state, s, q, free_mask, prune):
     # Addition of inactive bases with theta > 0, unless aligned with an active column.
     ok = (theta > _ZERO_FACTOR) & (s > _SPAN_TOL * state.beta * state.diag) & ~state.aligned
     ok[u] = False
-    add = ok.nonzero()[0]
+    add = np.flatnonzero(ok)
     rho = q[add] ** 2 / s[add]
     gain[add] = 0.5 * (rho - 1.0 - np.log(rho)) - prune
     new_alpha[add] = s[add] ** 2 / theta[add]
@@ -265,7 +259,6 @@ def solve(
     tol=1e-3,
     residual: Callable | None = None,
     log: Callable | None = None,
-    start: tuple | None = None,
 ):
     """Maximise the (optionally penalised) marginal likelihood from sufficient statistics.
 
@@ -298,9 +291,6 @@ def solve(
         ``residual(active, mu) -> ||t - Phi mu||^2``; by default computed from the Gram matrix.
     log : callable or None
         Called with one line of text per iteration.
-    start : tuple or None
-        ``(active, alpha, beta)``: columns, their prior precisions and the noise precision to start from
-        (a converged fit on related columns), in place of the single best-aligned column; without ``free``.
 
     Returns
     -------
@@ -308,21 +298,20 @@ def solve(
     """
     M = len(b)
     gram = DenseGram(gram) if isinstance(gram, np.ndarray) else gram
+    diag = gram.diag
     free = list(free)
     free_mask = np.zeros(M, dtype=bool)
     free_mask[free] = True
     residual = residual or _gram_residual(gram, b, tt, n)
 
-    if start is None:
-        state = _first_state(gram, b, free, min(1.0 / (0.01 * var_t), beta_max) if beta_fixed is None else beta_fixed)
-    else:
-        if free:
-            raise ParameterError(
-                expected("start", "a fit without free columns", f"free = {free}", "pass no start with them", raw=True)
-            )
-        active, alpha0, beta = start
-        beta = min(beta, beta_max) if beta_fixed is None else beta_fixed
-        state = _State(gram, b, beta, active, alpha0)
+    beta = beta_fixed if beta_fixed is not None else min(1.0 / (0.01 * var_t), beta_max)
+    norm = np.where(diag > 0, np.sqrt(diag), np.inf)
+    active = free if free else [int(np.argmax(np.abs(b) / norm))]
+    s0, q0 = beta * diag[active], beta * b[active]
+    theta0 = q0**2 - s0
+    alpha0 = np.where(theta0 > 0, s0**2 / np.where(theta0 > 0, theta0, 1.0), _INIT_ALPHA_MAX)
+    # Columns are admitted in order of q^2 / s; before any is in, that is (b_i / ||d_i||)^2.
+    state = _State(gram, b, beta, active, alpha0, priority=np.abs(b) / norm)
 
     # Continuation: reach the plain SparseBayes optimum first, then switch the penalty on and
     # let it delete (and re-admit) terms from there. Started with the penalty on, the greedy
@@ -339,19 +328,6 @@ def solve(
 
     state.recompute()  # clear rank-one drift before reporting
     return _finish(state, residual, n, n_iter, converged)
-
-
-def _first_state(gram, b, free, beta):
-    """SparseBayes's start: the free columns, or the column best aligned with the target, each at the prior
-    that maximises the evidence alone."""
-    diag = gram.diag
-    norm = np.where(diag > 0, np.sqrt(diag), np.inf)
-    active = free if free else [int(np.argmax(np.abs(b) / norm))]
-    s0, q0 = beta * diag[active], beta * b[active]
-    theta0 = q0**2 - s0
-    alpha0 = np.where(theta0 > 0, s0**2 / np.where(theta0 > 0, theta0, 1.0), _INIT_ALPHA_MAX)
-    # Columns are admitted in order of q^2 / s; before any is in, that is (b_i / ||d_i||)^2.
-    return _State(gram, b, beta, active, alpha0, priority=np.abs(b) / norm)
 
 
 def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, residual, n, log):
@@ -382,7 +358,7 @@ def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, resid
                 )
 
         if beta_fixed is None and (terminate or n_iter <= _BETA_UPDATE_START or n_iter % _BETA_UPDATE_EVERY == 0):
-            gamma = 1.0 - state.alpha * state.sigma.diagonal()
+            gamma = 1.0 - state.alpha * np.diag(state.sigma)
             resid = residual(state.active, state.mu)
             new_beta = min((n - np.sum(gamma)) / resid, beta_max)
             if abs(np.log(new_beta) - np.log(state.beta)) > _MIN_DELTA_LOG_BETA:
@@ -400,7 +376,6 @@ def _gram_residual(gram, b, tt, n):
     eps = np.finfo(float).eps
 
     def residual(active, mu):
-        active = np.asarray(active, dtype=np.intp)
         # a source that holds the matrix hands out the block alone: its columns cost n_terms rows each
         g = gram.block(active) if hasattr(gram, "block") else gram.columns(active)[active]
         value = tt - 2.0 * mu @ b[active] + mu @ g @ mu

@@ -38,15 +38,15 @@ def subset_stats(stats: GramStats, cols: Sequence[int], target: int) -> GramStat
     )
 
 
-def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None, start=None) -> RVM:
+def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None) -> RVM:
     """Fit a fresh RVM with ``template``'s options (no free columns) to one target; a given
     ``prune_nats`` overrides the template's, so subsets are scored with the full problem's
-    penalty; a given ``start`` (columns, alpha, noise_var) starts the solver there."""
+    penalty."""
     params = template.get_params()
     params["free"] = ()
     if prune_nats is not None:
         params["prune_nats"] = prune_nats
-    return RVM(**params)._fit_stats(stats, target, start)
+    return RVM(**params).fit_stats(stats, target=target)
 
 
 #: Distinct supports the local search scores per equation at most: a deterministic budget. The most any
@@ -66,11 +66,6 @@ class SupportSearch:
     with the residual (for additions) or with the residual plus the swapped term's
     contribution (for swaps), ``n_candidates`` each, plus every column nearly collinear with
     the swapped term.
-
-    Within a move every trial differs from the current support by a term or two, so its refit starts from the
-    current fit's priors and noise (on the columns they share) rather than from one column: the same
-    optimum in fewer iterations. The support the search returns is refitted from SparseBayes's
-    own start (:meth:`final`), so one support gives one set of coefficients whatever path led to it.
     """
 
     def __init__(self, stats, target, template, prune_nats, n_candidates=8):
@@ -79,7 +74,6 @@ class SupportSearch:
         G = stats.gram
         self.norms = np.sqrt(np.maximum(np.diag(G), 1e-300))
         self.cache: dict[tuple, tuple[float, list[int], RVM]] = {}
-        self.parent: tuple | None = None  # (columns, alpha, noise_var) of the fit a move starts from
 
     def score(self, cols) -> tuple[float, list[int], RVM] | None:
         """Penalised log evidence of the RVM refitted on ``cols``, the columns it keeps
@@ -89,29 +83,11 @@ class SupportSearch:
         if key not in self.cache:
             if len(self.cache) >= MAX_SCORED:
                 return None
-            stats = subset_stats(self.stats, key, self.target)
-            fit = fit_rvm(self.template, stats, 0, self.prune_nats, self._start(key))
+            fit = fit_rvm(self.template, subset_stats(self.stats, key, self.target), 0, self.prune_nats)
             kept = [key[i] for i in fit.active_]
             value = fit.log_evidence_ - self.prune_nats * len(kept)
             self.cache[key] = (value, kept, fit)
         return self.cache[key]
-
-    def _start(self, key):
-        """The parent fit's columns within ``key`` (as positions in it), their priors and the noise; None
-        without a parent or a shared column."""
-        if self.parent is None:
-            return None
-        cols, alpha, noise_var = self.parent
-        where = {c: i for i, c in enumerate(key)}
-        shared = [k for k, c in enumerate(cols) if c in where]
-        if not shared:
-            return None
-        return [where[cols[k]] for k in shared], alpha[shared], noise_var
-
-    def final(self, cols) -> tuple[list[int], RVM]:
-        """The columns kept and the fit of support ``cols`` refitted from SparseBayes's own start."""
-        fit = fit_rvm(self.template, subset_stats(self.stats, cols, self.target), 0, self.prune_nats)
-        return [cols[i] for i in fit.active_], fit
 
     def coefficients(self, kept, fit) -> np.ndarray:
         """Full-length coefficient vector of a fit returned by :meth:`score`."""
@@ -146,11 +122,9 @@ class SupportSearch:
         return [int(i) for i in np.flatnonzero(cos > EQUIVALENCE_COSINE) if i != j and i not in exclude]
 
     def run(self, active, max_moves=20):
-        self.parent = None
         best, active, fit = self.score(active)
         G, b = self.stats.gram, self.stats.dty[:, self.target]
         for _ in range(max_moves):
-            self.parent = (active, fit.alpha_[fit.active_], fit.noise_var_)
             mu = self.coefficients(active, fit)
             corr = b - G @ mu
             trials = [active + [i] for i in self._top(corr, active)]
@@ -172,7 +146,6 @@ class SupportSearch:
                 best, active, fit = improved
             if improved is None or spent:
                 break
-        self.parent = None
         return best, active, fit
 
 
