@@ -173,7 +173,7 @@ def _fit_equation(
             algebraic=algebraic,
         )
     active, alternatives, search = search_support(first, stats, k, keys, template, equivalence_nats)
-    _, kept, final = search.score(active)
+    _, kept, final = search.score(active, own=True)
     names = {col: tuple(library.terms[i].name for i in alternatives.get(col, ())) for col in kept}
     runners = [library.terms[c].name for c in search.runners_up(kept, final)]
     return Equation.from_fit(

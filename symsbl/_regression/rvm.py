@@ -59,6 +59,7 @@ from .._base.checks import Constraint, check_params, enough_rows
 from .._base.errors import DataError, ParameterError, expected
 from .._base.rule import PENALTIES, nats_per_term
 from .gram import GramStats, _as_matrix, check_target
+from .lockstep import solve_subsets
 from .sbl import solve
 
 __all__ = ["RVM"]
@@ -243,17 +244,7 @@ class RVM:
         if n < 2:
             raise DataError(expected("stats", "at least 2 samples", f"n_samples = {n:g}", raw=True))
         options = self._validated_options(n, M)
-        mean = y_sum / n
-        var_t = max(tt / n - mean**2, 0.0)
-        if not var_t > 1e-14 * tt / n:
-            var_t = tt / n  # constant target: measure it against its mean square
-        if not var_t > 0:
-            raise DataError(
-                expected("y", "a target that is not identically zero", "all zeros", "there is nothing to fit", raw=True)
-            )
-        # the target in units of its standard deviation, as the columns in units of their norm: then no threshold
-        # of the solver (theta > 1e-12, the first prior) depends on the unit the data are in
-        unit = np.sqrt(var_t)
+        unit = _target_unit(tt, y_sum, n)
         sol = solve(
             gram,
             dty / scale / unit,
@@ -271,6 +262,41 @@ class RVM:
         )
         self._store(sol, scale, unit, n, M, options["prune"])
         return self
+
+    def _fit_subsets(self, stats: GramStats, subsets, target: int = 0) -> list[RVM | None]:
+        """A fit of this RVM's options (no free columns) on each of ``subsets`` of ``stats``'s columns, as
+        ``fit_stats`` on each subset's own statistics would give, computed in lockstep
+        (:func:`symsbl._regression.lockstep.solve_subsets`); None where that did not converge."""
+        union = sorted(set().union(*subsets))
+        where = {c: i for i, c in enumerate(union)}
+        local = [np.array([where[c] for c in cols]) for cols in subsets]
+        scale = _column_scale(np.diag(stats.gram)[union])
+        n, tt = float(stats.n_samples), float(stats.yty[target])
+        unit = _target_unit(tt, stats.y_sum[target], n)
+        sizes = {len(cols): self._validated_options(n, len(cols)) for cols in subsets}  # they differ by size only
+        options = [sizes[len(cols)] for cols in subsets]
+        sols = solve_subsets(
+            stats.gram[np.ix_(union, union)] / np.outer(scale, scale),
+            stats.dty[union, target] / scale / unit,
+            tt / unit**2,
+            n,
+            1.0,
+            local,
+            prune=np.array([o["prune"] for o in options]),
+            beta_fixed=None if self.noise_var is None else unit**2 / options[0]["noise_var"],
+            beta_max=np.inf if self.noise_floor == 0 else 1.0 / self.noise_floor,
+            max_iter=self.max_iter,
+            tol=self.tol,
+        )
+        fits: list[RVM | None] = []
+        params = self.get_params()
+        for sol, cols, opts in zip(sols, local, options, strict=True):
+            fit = None
+            if sol is not None:
+                fit = RVM(**params)
+                fit._store(sol, scale[cols], unit, n, len(cols), opts["prune"])
+            fits.append(fit)
+        return fits
 
     def _store(self, sol, scale, unit, n, M, prune):
         u = sol.active
@@ -330,6 +356,20 @@ def _same(a, b) -> bool:
         return bool(a == b) and type(a) is type(b)
     except (TypeError, ValueError):
         return a is b
+
+
+def _target_unit(tt, y_sum, n) -> float:
+    """The target's standard deviation from its moments: the solver sees the target in this unit, as the
+    columns in units of their norm, so that no threshold of the solver (theta > 1e-12, the first prior)
+    depends on the unit the data are in."""
+    var_t = max(tt / n - (y_sum / n) ** 2, 0.0)
+    if not var_t > 1e-14 * tt / n:
+        var_t = tt / n  # constant target: measure it against its mean square
+    if not var_t > 0:
+        raise DataError(
+            expected("y", "a target that is not identically zero", "all zeros", "there is nothing to fit", raw=True)
+        )
+    return float(np.sqrt(var_t))
 
 
 def _column_scale(d2):

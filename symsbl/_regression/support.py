@@ -4,7 +4,8 @@ The fast RVM (:class:`symsbl.RVM`) is a greedy optimiser of the penalised eviden
 refines its answer for one state equation:
 
 - :class:`SupportSearch` tries single additions, deletions and swaps, each scored by the RVM's own
-  objective (log evidence minus the per-term penalty) refitted on the candidate support;
+  objective (log evidence minus the per-term penalty) refitted on the candidate support (a move's
+  supports side by side, :mod:`symsbl._regression.lockstep`, each along its own fit's path);
 - :func:`search_support` then applies parsimony among near-equivalent candidates: a kept term is
   replaced by a simpler one (:func:`complexity`) when the evidence cannot tell them apart, and the
   alternatives are reported.
@@ -38,15 +39,21 @@ def subset_stats(stats: GramStats, cols: Sequence[int], target: int) -> GramStat
     )
 
 
-def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None) -> RVM:
-    """Fit a fresh RVM with ``template``'s options (no free columns) to one target; a given
-    ``prune_nats`` overrides the template's, so subsets are scored with the full problem's
-    penalty."""
+def _subset_template(template: RVM, prune_nats=None) -> RVM:
+    """``template``'s options without free columns; a given ``prune_nats`` overrides the template's, so
+    subsets are scored with the full problem's penalty."""
     params = template.get_params()
     params["free"] = ()
     if prune_nats is not None:
         params["prune_nats"] = prune_nats
-    return RVM(**params).fit_stats(stats, target=target)
+    return RVM(**params)
+
+
+def fit_rvm(template: RVM, stats: GramStats, target: int, prune_nats=None) -> RVM:
+    """Fit a fresh RVM with ``template``'s options (no free columns) to one target; a given
+    ``prune_nats`` overrides the template's, so subsets are scored with the full problem's
+    penalty."""
+    return _subset_template(template, prune_nats).fit_stats(stats, target=target)
 
 
 #: Distinct supports the local search scores per equation at most: a deterministic budget. The most any
@@ -74,20 +81,41 @@ class SupportSearch:
         G = stats.gram
         self.norms = np.sqrt(np.maximum(np.diag(G), 1e-300))
         self.cache: dict[tuple, tuple[float, list[int], RVM]] = {}
+        self.batched: set[tuple] = set()  # supports scored in lockstep, not by their own fit
 
-    def score(self, cols) -> tuple[float, list[int], RVM] | None:
+    def _entry(self, key, fit) -> tuple[float, list[int], RVM]:
+        kept = [key[i] for i in fit.active_]
+        return fit.log_evidence_ - self.prune_nats * len(kept), kept, fit
+
+    def score(self, cols, own: bool = False) -> tuple[float, list[int], RVM] | None:
         """Penalised log evidence of the RVM refitted on ``cols``, the columns it keeps
         (sorted), and the fit itself; None once :data:`MAX_SCORED` supports have been scored
-        (the search then keeps the best found so far)."""
+        (the search then keeps the best found so far). ``own`` asks for the support's own fit where
+        the cached one was scored in lockstep (they agree to rounding)."""
         key = tuple(sorted(cols))
-        if key not in self.cache:
-            if len(self.cache) >= MAX_SCORED:
+        if key not in self.cache or (own and key in self.batched):
+            if key not in self.cache and len(self.cache) >= MAX_SCORED:
                 return None
             fit = fit_rvm(self.template, subset_stats(self.stats, key, self.target), 0, self.prune_nats)
-            kept = [key[i] for i in fit.active_]
-            value = fit.log_evidence_ - self.prune_nats * len(kept)
-            self.cache[key] = (value, kept, fit)
+            self.cache[key] = self._entry(key, fit)
+            self.batched.discard(key)
         return self.cache[key]
+
+    def score_all(self, trials) -> None:
+        """Score the supports among ``trials`` not scored yet, in order and within :data:`MAX_SCORED`, in one
+        lockstep fit (:func:`symsbl._regression.lockstep.solve_subsets`): a move's dozens of refits at the cost
+        of a few. A support whose lockstep fit did not converge gets its own fit, which says so."""
+        keys = list(dict.fromkeys(tuple(sorted(cols)) for cols in trials if tuple(sorted(cols)) not in self.cache))
+        keys = keys[: max(MAX_SCORED - len(self.cache), 0)]
+        if len(keys) < 2 or self.template.verbose:
+            return
+        fits = _subset_template(self.template, self.prune_nats)._fit_subsets(self.stats, keys, self.target)
+        for key, fit in zip(keys, fits, strict=True):
+            if fit is None:
+                self.score(key)
+            else:
+                self.cache[key] = self._entry(key, fit)
+                self.batched.add(key)
 
     def coefficients(self, kept, fit) -> np.ndarray:
         """Full-length coefficient vector of a fit returned by :meth:`score`."""
@@ -97,7 +125,9 @@ class SupportSearch:
 
     def _top(self, scores, exclude):
         order = np.argsort(-np.abs(scores) / self.norms, kind="stable")
-        return [int(i) for i in order if i not in exclude][: self.k]
+        allowed = np.ones(len(order), dtype=bool)
+        allowed[list(exclude)] = False
+        return [int(i) for i in order[allowed[order]][: self.k]]
 
     def runners_up(self, kept, fit, k: int = 2) -> list[int]:
         """Up to ``k`` candidates whose addition to the fit on ``kept`` would raise its log evidence by more
@@ -135,6 +165,7 @@ class SupportSearch:
                 pool = self._top(corr + mu[j] * G[:, j], active) + self.collinear(j, active)
                 trials += [others + [i] for i in dict.fromkeys(pool)]
             improved, spent = None, False
+            self.score_all(trials)
             for cols in trials:
                 scored = self.score(cols)
                 if scored is None:  # out of budget: keep the best support found, this move's included
