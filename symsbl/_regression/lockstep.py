@@ -8,13 +8,12 @@ numpy call per step for all of them:
 
 - each subset keeps its own active list, priors, posterior, noise precision, phase (plain, then
   penalised) and iteration counter, exactly as its own call of ``solve`` would;
-- the posterior is padded to the largest subset (padded entries are zero), the factors ``S`` and ``Q``
-  run over the union of the subsets' columns, and a column outside a subset is never chosen for it;
+- every array is padded to the largest subset (padded entries are zero, and never chosen), and every
+  index is a position within the subset, as in its own call;
 - additions, deletions and re-estimations are the same rank-one updates, applied to the subsets that
   chose them; a deletion shifts the positions after it, so the order of a subset's active list is its
   own call's;
-- the first maximum over the union in sorted order is the first maximum over the subset's sorted
-  columns, so ties go where ``solve`` sends them.
+- ties go to the first maximum, as in ``solve``.
 
 The results agree with ``solve``'s to rounding: the padded sums differ in their last bits.
 """
@@ -46,35 +45,41 @@ __all__ = ["solve_subsets"]
 class _Batch:
     """The state of every subset's solver (see :class:`symsbl._regression.sbl._State`), padded.
 
-    Shapes: ``T`` subsets, ``U`` union columns, ``A`` the largest subset. ``act[t, p]`` is the union
-    column at active position ``p`` of subset ``t``, ``m[t]`` the number of active positions."""
+    Shapes: ``T`` subsets, ``A`` the largest. Every index is a position within its subset (its sorted columns):
+    ``G[t]`` is subset ``t``'s Gram matrix, zero past its size; ``act[t, p]`` the subset's column at active
+    position ``p``, ``m[t]`` the number of active positions."""
 
     def __init__(self, gram, b, tt, n, subsets, beta, beta_max):
-        T, U, A = len(subsets), len(b), max(len(s) for s in subsets)
-        self.G, self.b, self.tt, self.n, self.beta_max = gram, b, tt, n, beta_max
-        self.d = np.diag(gram).copy()
-        self.allowed = np.zeros((T, U), dtype=bool)
+        T, A = len(subsets), max(len(s) for s in subsets)
+        self.tt, self.n, self.beta_max = tt, n, beta_max
+        sub = np.zeros((T, A), dtype=int)
+        self.allowed = np.arange(A) < np.array([len(s) for s in subsets])[:, None]
         for t, cols in enumerate(subsets):
-            self.allowed[t, cols] = True
+            sub[t, : len(cols)] = cols
+        both = self.allowed[:, :, None] & self.allowed[:, None, :]
+        self.G = np.where(both, gram[sub[:, :, None], sub[:, None, :]], 0.0)
+        self.b = np.where(self.allowed, b[sub], 0.0)
+        self.d = np.diagonal(self.G, axis1=1, axis2=2).copy()
         self.act = np.zeros((T, A), dtype=int)
         self.m = np.ones(T, dtype=int)
         self.alpha = np.ones((T, A))
         self.mu = np.zeros((T, A))
         self.sigma = np.zeros((T, A, A))
-        self.cols = np.zeros((T, U, A))
-        self.basis = np.zeros((T, U, A))
-        self.S, self.Q = np.zeros((T, U)), np.zeros((T, U))
+        self.cols = np.zeros((T, A, A))
+        self.basis = np.zeros((T, A, A))
+        self.S, self.Q = np.zeros((T, A)), np.zeros((T, A))
         self.log_det = np.zeros(T)
         self.beta = np.full(T, float(beta))
         norm = np.where(self.d > 0, np.sqrt(np.where(self.d > 0, self.d, 1.0)), np.inf)
-        first = np.argmax(np.where(self.allowed, np.abs(b) / norm, -np.inf), axis=1)
-        s0, q0 = beta * self.d[first], beta * b[first]
+        first = np.argmax(np.where(self.allowed, np.abs(self.b) / norm, -np.inf), axis=1)
+        rows = np.arange(T)
+        s0, q0 = beta * self.d[rows, first], beta * self.b[rows, first]
         theta0 = q0**2 - s0
         self.alpha[:, 0] = np.where(theta0 > 0, s0**2 / np.where(theta0 > 0, theta0, 1.0), _INIT_ALPHA_MAX)
         self.act[:, 0] = first
-        self.cols[:, :, 0] = gram[first]
+        self.cols[:, :, 0] = self.G[rows, first]
         self.aligned = np.abs(self.cols[:, :, 0]) > _ALIGN_MAX
-        self.recompute(np.arange(T))
+        self.recompute(rows)
 
     def valid(self, idx):
         """Mask of the active positions, shape (len(idx), A)."""
@@ -91,7 +96,7 @@ class _Batch:
         g, valid = self.block(idx)
         beta = self.beta[idx]
         precision = beta[:, None, None] * g + _diag(np.where(valid, self.alpha[idx], 1.0))
-        b_a = np.where(valid, self.b[self.act[idx]], 0.0)
+        b_a = np.where(valid, np.take_along_axis(self.b[idx], self.act[idx], axis=1), 0.0)
         try:
             upper = np.linalg.cholesky(precision).transpose(0, 2, 1)
             u_inv = np.linalg.inv(upper)
@@ -110,11 +115,11 @@ class _Batch:
         basis = beta[:, None, None] * self.cols[idx]
         self.basis[idx] = basis
         proj = basis @ u_inv
-        self.S[idx] = beta[:, None] * self.d - np.sum(proj**2, axis=2)
-        self.Q[idx] = beta[:, None] * self.b - np.einsum("rua,ra->ru", basis, self.mu[idx])
+        self.S[idx] = beta[:, None] * self.d[idx] - np.sum(proj**2, axis=2)
+        self.Q[idx] = beta[:, None] * self.b[idx] - np.einsum("rua,ra->ru", basis, self.mu[idx])
 
     def factors(self, idx):
-        """Left-out sparsity and quality factors ``s``, ``q`` (``_State.factors``), shape (len(idx), U)."""
+        """Left-out sparsity and quality factors ``s``, ``q`` (``_State.factors``), shape (len(idx), A)."""
         s, q = self.S[idx], self.Q[idx]
         valid = self.valid(idx)
         sig = np.where(valid, np.diagonal(self.sigma[idx], axis1=1, axis2=2), 1.0)
@@ -127,18 +132,18 @@ class _Batch:
     def choose(self, idx, prune):
         """Every column's best action, its gain and new prior per subset (``sbl._choose``)."""
         s, q, sig, valid = self.factors(idx)
-        R, U = s.shape
+        R, A = s.shape
         act, alpha, rows = self.act[idx], self.alpha[idx], np.arange(R)[:, None]
         theta = q**2 - s
-        gain, action, new_alpha = np.full((R, U), -np.inf), np.full((R, U), _ADD), np.full((R, U), np.inf)
+        gain, action, new_alpha = np.full((R, A), -np.inf), np.full((R, A), _ADD), np.full((R, A), np.inf)
         theta_u, s_u = theta[rows, act], s[rows, act]
         relevant = valid & (theta_u > _ZERO_FACTOR)
         a_new = np.where(relevant, s_u**2 / np.where(relevant, theta_u, 1.0), np.inf)
         S_u, Q_u = self.S[idx][rows, act], self.Q[idx][rows, act]
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            delta = 1.0 / a_new - 1.0 / alpha
+        delta = 1.0 / a_new - 1.0 / alpha
+        with np.errstate(invalid="ignore", divide="ignore"):
             re_gain = 0.5 * (delta * Q_u**2 / (delta * S_u + 1.0) - np.log1p(S_u * delta))
-            contribution = 0.5 * (self.mu[idx] ** 2 / sig + np.log(alpha * sig))
+        contribution = 0.5 * (self.mu[idx] ** 2 / sig + np.log(alpha * sig))
         re_gain = np.where(relevant, re_gain, -np.inf)
         deletable = valid & (self.m[idx, None] > 1) & (~relevant | (prune[:, None] > 0))
         del_gain = np.where(deletable, prune[:, None] - contribution, -np.inf)
@@ -148,10 +153,10 @@ class _Batch:
         gain[rv, cv] = np.where(use_del, del_gain, re_gain)[rv, pv]
         action[rv, cv] = np.where(use_del, _DELETE, _REESTIMATE)[rv, pv]
         new_alpha[rv, cv] = np.where(use_del, np.inf, a_new)[rv, pv]
-        is_active = np.zeros((R, U), dtype=bool)
+        is_active = np.zeros((R, A), dtype=bool)
         is_active[rv, cv] = True
         ok = self.allowed[idx] & ~is_active & ~self.aligned[idx] & (theta > _ZERO_FACTOR)
-        ok &= s > _SPAN_TOL * self.beta[idx, None] * self.d
+        ok &= s > _SPAN_TOL * self.beta[idx, None] * self.d[idx]
         with np.errstate(invalid="ignore", divide="ignore"):
             rho = np.where(ok, q**2 / np.where(ok, s, 1.0), 1.0)
             gain = np.where(ok, 0.5 * (rho - 1.0 - np.log(rho)) - prune[:, None], gain)
@@ -195,7 +200,7 @@ class _Batch:
     def add(self, idx, k, j, new):
         """Column ``j`` enters at the next position (``_State.add``)."""
         r, m = np.arange(len(idx)), self.m[idx]
-        col = self.G[j]
+        col = self.G[idx, j]
         sig_ii = 1.0 / (new + self.S[idx, j])
         mu_i = sig_ii * self.Q[idx, j]
         basis_i = self.beta[idx, None] * col
@@ -244,7 +249,7 @@ class _Batch:
         """``||t - Phi mu||^2`` of subsets ``idx`` from the Gram matrix, floored (``sbl._gram_residual``)."""
         g, valid = self.block(idx)
         mu = self.mu[idx]
-        b_a = np.where(valid, self.b[self.act[idx]], 0.0)
+        b_a = np.where(valid, np.take_along_axis(self.b[idx], self.act[idx], axis=1), 0.0)
         value = self.tt - 2.0 * np.sum(mu * b_a, axis=1) + np.einsum("ra,rab,rb->r", mu, g, mu)
         bound = np.einsum("ra,rab,rb->r", np.abs(mu), np.abs(g), np.abs(mu))
         bound = np.finfo(float).eps * (self.m[idx] + np.sqrt(self.n)) * (self.tt + bound)
@@ -270,6 +275,10 @@ def _diag(values):
     return out
 
 
+#: Doubles in one of a batch's (subsets, size, size) arrays at most: larger batches are fitted in parts.
+_BATCH_DOUBLES = 2**22
+
+
 def solve_subsets(
     gram,
     b,
@@ -289,13 +298,13 @@ def solve_subsets(
     Parameters
     ----------
     gram : ndarray, shape (U, U)
-        ``D^T D`` of unit-norm (or zero) columns: the union of the subsets.
+        ``D^T D`` of unit-norm (or zero) columns, symmetric.
     b, tt, n, var_t, beta_fixed, beta_max, max_iter, tol
         As for ``solve``.
     subsets : sequence of sequences of int
-        Each subset's columns, sorted, as indices into ``gram``.
-    prune : ndarray, shape (len(subsets),)
-        Each subset's penalty in nats per term.
+        Each subset's columns, as indices into ``gram``: non-empty and increasing.
+    prune : float or ndarray, shape (len(subsets),)
+        The penalty in nats per term, one for all or one per subset.
 
     Returns
     -------
@@ -304,13 +313,26 @@ def solve_subsets(
         ``solve`` had been given the subset alone; None for a subset that did not converge within
         ``max_iter`` (its own call of ``solve`` then says so).
     """
-    beta = beta_fixed if beta_fixed is not None else min(1.0 / (0.01 * var_t), beta_max)
-    batch = _Batch(np.asarray(gram, dtype=float), np.asarray(b, dtype=float), tt, n, subsets, beta, beta_max)
-    T = len(subsets)
-    prune = np.asarray(prune, dtype=float)
+    subsets = [np.asarray(cols, dtype=int) for cols in subsets]
+    assert all(len(c) and np.all(np.diff(c) > 0) for c in subsets), "subsets must be non-empty and increasing"
+    assert max_iter >= 1
+    prune = np.broadcast_to(np.asarray(prune, dtype=float), (len(subsets),))
+    gram, b = np.asarray(gram, dtype=float), np.asarray(b, dtype=float)
+    out: list[Solution | None] = []
+    size = max(len(c) for c in subsets) ** 2
+    step = max(_BATCH_DOUBLES // size, 1)
+    for lo in range(0, len(subsets), step):
+        batch = subsets[lo : lo + step]
+        beta = beta_fixed if beta_fixed is not None else min(1.0 / (0.01 * var_t), beta_max)
+        out += _run(_Batch(gram, b, tt, n, batch, beta, beta_max), prune[lo : lo + step], beta_fixed, max_iter, tol)
+    return out
+
+
+def _run(batch: _Batch, prune, beta_fixed, max_iter, tol) -> list[Solution | None]:
+    """Iterate every subset of ``batch`` to its end (``sbl.solve``'s two phases and ``sbl._iterate``)."""
+    T = len(prune)
     phase = np.where(prune > 0, 0, 1)  # 0: the plain optimum first; 1: the objective with its penalty
-    first = max(max_iter // 2, 1)
-    budget = np.where(phase == 0, first, max_iter)
+    budget = np.where(phase == 0, max(max_iter // 2, 1), max_iter)
     used, it = np.zeros(T, dtype=int), np.zeros(T, dtype=int)
     done, converged = np.zeros(T, dtype=bool), np.zeros(T, dtype=bool)
     while not done.all():
@@ -333,13 +355,12 @@ def solve_subsets(
     batch.recompute(every)  # clear rank-one drift before reporting
     s, q, _, _ = batch.factors(every)
     resid = batch.residual(every)
-    return [_finish(batch, t, subsets[t], used[t], s[t], q[t], resid[t]) if converged[t] else None for t in range(T)]
+    return [_finish(batch, t, used[t], s[t], q[t], resid[t]) if converged[t] else None for t in range(T)]
 
 
-def _finish(batch, t, subset, n_iter, s, q, resid) -> Solution:
-    """Subset ``t``'s solution in its own indices (``sbl._finish``), from its factors ``s``, ``q`` and
-    residual ``resid``."""
-    m = int(batch.m[t])
+def _finish(batch, t, n_iter, s, q, resid) -> Solution:
+    """Subset ``t``'s solution (``sbl._finish``), from its factors ``s``, ``q`` and residual ``resid``."""
+    m, size = int(batch.m[t]), int(batch.allowed[t].sum())
     order = np.argsort(batch.act[t, :m])
     u = batch.act[t, :m][order]
     alpha, mu = batch.alpha[t, :m][order], batch.mu[t, :m][order]
@@ -355,15 +376,15 @@ def _finish(batch, t, subset, n_iter, s, q, resid) -> Solution:
     )
     sig = np.diag(sigma)
     return Solution(
-        active=np.searchsorted(subset, u),
+        active=u,
         alpha=alpha,
         mu=mu,
         sigma=sigma,
         beta=beta,
         log_evidence=float(log_evidence),
         contribution=0.5 * (mu**2 / sig + np.log(alpha * sig)),
-        s_out=s[subset],
-        q_out=q[subset],
+        s_out=s[:size],
+        q_out=q[:size],
         n_iter=int(n_iter),
         converged=True,
     )

@@ -266,7 +266,9 @@ class RVM:
     def _fit_subsets(self, stats: GramStats, subsets, target: int = 0) -> list[RVM | None]:
         """A fit of this RVM's options (no free columns) on each of ``subsets`` of ``stats``'s columns, as
         ``fit_stats`` on each subset's own statistics would give, computed in lockstep
-        (:func:`symsbl._regression.lockstep.solve_subsets`); None where that did not converge."""
+        (:func:`symsbl._regression.lockstep.solve_subsets`); None where that did not converge. Each subset's
+        columns are increasing."""
+        assert not self.free, "subsets are fitted without free columns"
         union = sorted(set().union(*subsets))
         where = {c: i for i, c in enumerate(union)}
         local = [np.array([where[c] for c in cols]) for cols in subsets]

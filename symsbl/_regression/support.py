@@ -90,11 +90,11 @@ class SupportSearch:
     def score(self, cols, own: bool = False) -> tuple[float, list[int], RVM] | None:
         """Penalised log evidence of the RVM refitted on ``cols``, the columns it keeps
         (sorted), and the fit itself; None once :data:`MAX_SCORED` supports have been scored
-        (the search then keeps the best found so far). ``own`` asks for the support's own fit where
-        the cached one was scored in lockstep (they agree to rounding)."""
+        (the search then keeps the best found so far). ``own`` asks for the support's own fit, past the
+        budget too, where the cached one was scored in lockstep (they agree to rounding) or none was."""
         key = tuple(sorted(cols))
         if key not in self.cache or (own and key in self.batched):
-            if key not in self.cache and len(self.cache) >= MAX_SCORED:
+            if key not in self.cache and len(self.cache) >= MAX_SCORED and not own:
                 return None
             fit = fit_rvm(self.template, subset_stats(self.stats, key, self.target), 0, self.prune_nats)
             self.cache[key] = self._entry(key, fit)
