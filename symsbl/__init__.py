@@ -10,9 +10,9 @@ only public modules are :mod:`symsbl.systems` (ready-made systems) and :mod:`sym
 (figures, optional matplotlib).
 """
 
-from importlib import metadata as _metadata
-
 from ._base import interrupt as _interrupt  # noqa: F401  first: Ctrl-C while the symsbl command imports is one line, not a traceback
+
+from importlib import metadata as _metadata
 from . import systems
 
 # -- errors ----------------------------------------------------------------------------------
