@@ -36,6 +36,8 @@ from .sbl import (
     _SPAN_TOL,
     _ZERO_FACTOR,
     Solution,
+    contribution,
+    log_evidence_at,
     posterior,
 )
 
@@ -143,10 +145,10 @@ class _Batch:
         delta = 1.0 / a_new - 1.0 / alpha
         with np.errstate(invalid="ignore", divide="ignore"):
             re_gain = 0.5 * (delta * Q_u**2 / (delta * S_u + 1.0) - np.log1p(S_u * delta))
-        contribution = 0.5 * (self.mu[idx] ** 2 / sig + np.log(alpha * sig))
+        drop = contribution(self.mu[idx], sig, alpha)
         re_gain = np.where(relevant, re_gain, -np.inf)
         deletable = valid & (self.m[idx, None] > 1) & (~relevant | (prune[:, None] > 0))
-        del_gain = np.where(deletable, prune[:, None] - contribution, -np.inf)
+        del_gain = np.where(deletable, prune[:, None] - drop, -np.inf)
         use_del = del_gain > re_gain
         rv, pv = np.nonzero(valid)  # padded positions point at column 0: only real ones are written
         cv = act[rv, pv]
@@ -365,16 +367,8 @@ def _finish(batch, t, n_iter, s, q, resid) -> Solution:
     u = batch.act[t, :m][order]
     alpha, mu = batch.alpha[t, :m][order], batch.mu[t, :m][order]
     sigma = batch.sigma[t][np.ix_(order, order)]
-    beta, n = float(batch.beta[t]), batch.n
-    log_evidence = 0.5 * (
-        n * np.log(beta)
-        - beta * resid
-        - mu @ (alpha * mu)
-        + np.sum(np.log(alpha))
-        - batch.log_det[t]
-        - n * np.log(2.0 * np.pi)
-    )
-    sig = np.diag(sigma)
+    beta = float(batch.beta[t])
+    log_evidence = log_evidence_at(batch.n, beta, resid, mu, alpha, batch.log_det[t])
     return Solution(
         active=u,
         alpha=alpha,
@@ -382,7 +376,7 @@ def _finish(batch, t, n_iter, s, q, resid) -> Solution:
         sigma=sigma,
         beta=beta,
         log_evidence=float(log_evidence),
-        contribution=0.5 * (mu**2 / sig + np.log(alpha * sig)),
+        contribution=contribution(mu, np.diag(sigma), alpha),
         s_out=s[:size],
         q_out=q[:size],
         n_iter=int(n_iter),

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DenseGram", "Solution", "posterior", "solve"]
+__all__ = ["DenseGram", "Solution", "contribution", "log_evidence_at", "posterior", "solve"]
 
 _ZERO_FACTOR = 1e-12  # theta = q^2 - s below this counts as "not relevant" (SparseBayes)
 _ALIGN_MAX = 1.0 - 1e-3  # refuse a column this aligned with an active one (SparseBayes)
@@ -154,8 +154,7 @@ class _State:
     def contribution(self):
         """Exact log-evidence drop from deleting each active basis (others fixed):
         ``1/2 [mu_i^2 / Sigma_ii + log(alpha_i Sigma_ii)]``."""
-        sig = np.diag(self.sigma)
-        return 0.5 * (self.mu**2 / sig + np.log(self.alpha * sig))
+        return contribution(self.mu, np.diag(self.sigma), self.alpha)
 
     def reestimate(self, k, new_alpha):
         sig_k, mu_k = self.sigma[:, k].copy(), self.mu[k]
@@ -371,6 +370,20 @@ def _iterate(state, prune, max_iter, free_mask, beta_fixed, beta_max, tol, resid
     return n_iter, converged
 
 
+def contribution(mu, sig, alpha):
+    """Exact log-evidence drop from deleting each active basis, others fixed, from its posterior mean ``mu``,
+    variance ``sig`` and prior ``alpha``: ``1/2 [mu_i^2 / Sigma_ii + log(alpha_i Sigma_ii)]``."""
+    return 0.5 * (mu**2 / sig + np.log(alpha * sig))
+
+
+def log_evidence_at(n, beta, resid, mu, alpha, log_det):
+    """Log marginal likelihood at the posterior mean ``mu`` of ``n`` samples with noise precision ``beta``,
+    residual ``resid = ||t - Phi mu||^2``, priors ``alpha`` and ``log_det = log |Sigma^-1|``."""
+    return 0.5 * (
+        n * np.log(beta) - beta * resid - mu @ (alpha * mu) + np.sum(np.log(alpha)) - log_det - n * np.log(2.0 * np.pi)
+    )
+
+
 def _gram_residual(gram, b, tt, n):
     """``||t - Phi mu||^2`` from the Gram matrix, floored at its own rounding-error bound."""
     eps = np.finfo(float).eps
@@ -393,16 +406,8 @@ def _finish(state, residual, n, n_iter, converged):
     mu = state.mu[order]
     sigma = state.sigma[np.ix_(order, order)]
     beta = state.beta
-    resid = residual(list(u), mu)
-    log_evidence = 0.5 * (
-        n * np.log(beta)
-        - beta * resid
-        - mu @ (alpha * mu)
-        + np.sum(np.log(alpha))
-        - state.log_det
-        - n * np.log(2.0 * np.pi)
-    )
-    contribution = state.contribution()[order]
+    log_evidence = log_evidence_at(n, beta, residual(list(u), mu), mu, alpha, state.log_det)
+    drop = state.contribution()[order]
     return Solution(
         active=u,
         alpha=alpha,
@@ -410,7 +415,7 @@ def _finish(state, residual, n, n_iter, converged):
         sigma=sigma,
         beta=float(beta),
         log_evidence=float(log_evidence),
-        contribution=contribution,
+        contribution=drop,
         s_out=s,
         q_out=q,
         n_iter=n_iter,

@@ -105,7 +105,7 @@ class SupportSearch:
         """Score the supports among ``trials`` not scored yet, in order and within :data:`MAX_SCORED`, in one
         lockstep fit (:func:`symsbl._regression.lockstep.solve_subsets`): a move's dozens of refits at the cost
         of a few. A support whose lockstep fit did not converge gets its own fit, which says so."""
-        keys = list(dict.fromkeys(tuple(sorted(cols)) for cols in trials if tuple(sorted(cols)) not in self.cache))
+        keys = [key for key in dict.fromkeys(tuple(sorted(cols)) for cols in trials) if key not in self.cache]
         keys = keys[: max(MAX_SCORED - len(self.cache), 0)]
         if len(keys) < 2 or self.template.verbose:
             return
